@@ -1,0 +1,140 @@
+"""The triphasic growth model (MODEL.md §2): O2 o, cells c, ECM m on the growth grid.
+
+`GrowthModel` is the right-hand side `(t, y, args) -> dy` of
+
+    ∂o/∂t = ∇·((D_o(m) + D_disp) ∇o) − v̂·∇o − Q_o c o/(o_h + o)        (2.1, A.1)
+    ∂c/∂t = ∇·(D_c ∇c − χ c (c_max − c) ∇o) + k_c(o) c (c_max − c)      (2.3, A.2)
+    ∂m/∂t = k_m(o) c (1 − m)                                             (2.5, A.3)
+
+with o = o_ext on the two surfaces, no flux of c anywhere and no flux of o through the
+posts (§2). The lumped transport of the conditioning cycle (velocity v̂ and
+dispersivity D_disp, MODEL.md §5) enters through `Transport`; static culture has none.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from . import operators as ops
+from ._types import Field
+from .grid import Grid
+from .params import Coefficients, moser_aiba
+
+
+class State(eqx.Module):
+    """Non-dimensional fields on the growth grid (MODEL.md §2)."""
+
+    o: Field
+    c: Field
+    m: Field
+
+    @classmethod
+    def initial(cls, coeffs: Coefficients, grid: Grid) -> "State":
+        """o = o_ext, c = 1, m = 0 everywhere (MODEL.md §2)."""
+        ones = jnp.ones(grid.shape)
+        return cls(o=coeffs.o_ext * ones, c=ones, m=0.0 * ones)
+
+
+class Transport(eqx.Module):
+    """Lumped transport of a conditioning cycle, frozen over a growth interval (§5):
+    cell-centred velocity (cm/s) and an added O2 dispersivity (cm²/s)."""
+
+    vx: Field
+    vy: Field
+    dispersion: Field
+
+    @classmethod
+    def none(cls, grid: Grid) -> "Transport":
+        z = jnp.zeros(grid.shape)
+        return cls(vx=z, vy=z, dispersion=z)
+
+
+def o2_diffusivity(m, coeffs: Coefficients):
+    """D_o(m) of the Chang unit cell (A.4, as reconstructed in MODEL.md §2), cm²/s."""
+    k, psi = coeffs.kappa, coeffs.psi
+    num = 9 * k * m - 6 * m * (1 - m) * (k - 1) + 2 * (1 - m) * k * psi
+    den = 9 * m + 3 * m * (1 - m) * (k - 1) + (2 + m) * k * psi
+    return coeffs.D_o0 * num / den
+
+
+def o2_consumption(o, c, coeffs: Coefficients):
+    """Michaelis–Menten consumption Q_o c o/(o_h + o) (2.2), with o clipped at 0."""
+    o = jnp.maximum(o, 0.0)
+    return coeffs.Q_o * c * o / (coeffs.o_h + o)
+
+
+def proliferation_rate(o, coeffs: Coefficients):
+    """k_c(o) = k_p g(o) − k_a, g the Moser–Aiba factor (A.6), 1/s."""
+    return coeffs.k_p * moser_aiba(o, coeffs.n_moser, coeffs.o_c, coeffs.k_i) - coeffs.k_a
+
+
+def ecm_synthesis_rate(o, coeffs: Coefficients):
+    """k_m(o) = k_m0 (o − o_m) above the threshold o_m, else 0 (2.6), 1/s."""
+    return coeffs.k_m0 * jnp.maximum(o - coeffs.o_m, 0.0)
+
+
+class GrowthModel(eqx.Module):
+    """The right-hand side of the growth system (module docstring), as a callable pytree.
+
+    `advection` chooses the scheme for v̂·∇o: `"limited"` (MUSCL, van Leer; second
+    order) or `"upwind"` (first order).
+    """
+
+    coeffs: Coefficients
+    grid: Grid
+    transport: Transport | None = None
+    advection: str = eqx.field(static=True, default="limited")
+
+    def __check_init__(self):
+        if self.advection not in ("limited", "upwind"):
+            raise ValueError(f"advection = {self.advection!r} must be 'limited' or 'upwind'")
+
+    @property
+    def spacing(self):
+        return self.grid.spacing(self.coeffs.length_cm, self.coeffs.thickness_cm)
+
+    def o2_diffusivity(self, m) -> Field:
+        d = o2_diffusivity(m, self.coeffs)
+        if self.transport is not None:
+            d = d + self.transport.dispersion
+        return d
+
+    def __call__(self, t, y: State, args=None) -> State:
+        k = self.coeffs
+        dx, dy = self.spacing
+        o, c, m = y.o, y.c, y.m
+        # O2 (2.1)
+        do = ops.diffusion(o, self.o2_diffusivity(m), dx, dy, k.o_ext) - o2_consumption(o, c, k)
+        if self.transport is not None:
+            do = do - ops.advection(
+                o, self.transport.vx, self.transport.vy, dx, dy, k.o_ext,
+                limited=self.advection == "limited",
+            )
+        # cells (2.3): random motility and chemotaxis, no flux through any face
+        dc = proliferation_rate(o, k) * c * (k.c_max - c) + self.cell_flux_divergence(o, c)
+        # ECM (2.5, 2.6)
+        dm = ecm_synthesis_rate(o, k) * c * (1.0 - m)
+        return State(o=do, c=dc, m=dm)
+
+    def cell_flux_divergence(self, o, c) -> Field:
+        """−∇·J_c with J_c = −D_c ∇c + χ c (c_max − c) ∇o and J_c = 0 on every face."""
+        k = self.coeffs
+        dx, dy = self.spacing
+        sens = c * (k.c_max - c)
+        jx = k.D_c * ops.gradient_x(c, dx) - k.chi * ops.face_average_x(sens) * ops.gradient_x(o, dx)
+        jy_inner = (
+            k.D_c * ops.gradient_y(c, dy, None)
+            - k.chi * ops.face_average_y(sens) * ops.gradient_y(o, dy, None)
+        )
+        jy = jy_inner.at[:, 0].set(0.0).at[:, -1].set(0.0)
+        return ops.divergence(jx, jy, dx, dy)
+
+    def o2_boundary_influx(self, y: State):
+        """O2 entering through the two surfaces per unit depth, Σ faces D ∂o/∂n dx (cm²/s
+        in o-units): the surface term of the O2 budget (used to check conservation)."""
+        dx, dy = self.spacing
+        g = ops.gradient_y(y.o, dy, self.coeffs.o_ext)
+        flux = ops.face_coefficient_y(self.o2_diffusivity(y.m)) * g
+        return jnp.sum(flux[:, -1] - flux[:, 0]) * dx
+

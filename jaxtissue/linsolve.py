@@ -1,0 +1,194 @@
+"""The structured linear algebra of the growth system's implicit steps (MODEL.md §9).
+
+A linearly implicit step solves `(a I − J) u = r` with `a = 1/(γ h)`. The growth
+Jacobian couples o to its four neighbours (diffusion, advection) and the three species
+only pointwise, so:
+
+1. **Probe** `J` with a few coloured JVPs (3 colours in 1-D, 5 in 2-D: no two cells of
+   a 5-point stencil share one) instead of one JVP per unknown.
+2. **Eliminate** c and m pointwise (a Schur complement): what is left is a 5-point
+   operator on o alone.
+3. **Solve** it: one batched tridiagonal solve per column in 1-D (`nx = 1`); in 2-D a
+   block-tridiagonal (block Thomas) elimination along x with ny × ny blocks.
+
+The approximation `J̃` kept here drops the O2-diffusivity's dependence on m and the
+neighbour couplings of c (cell motility/chemotaxis) — weak or, with the paper's
+D_c = χ = 0, absent. The integrator is a Rosenbrock-W method, whose order does not
+depend on the Jacobian being exact (see `solver.py`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Field
+from .growth import State
+
+# the 5-point stencil, (di, dj) offsets in (x, y)
+_OFFSETS = {"south": (0, -1), "north": (0, 1), "west": (-1, 0), "east": (1, 0)}
+
+
+def colouring(nx: int, ny: int) -> np.ndarray:
+    """A colour per cell such that the cells of any 5-point stencil differ in colour."""
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    return (j % 3) if nx == 1 else (i + 2 * j) % 5
+
+
+def _neighbour_colours(col: np.ndarray):
+    """For each stencil offset: the neighbour's colour (0 where outside) and a mask."""
+    nx, ny = col.shape
+    out = {}
+    for name, (di, dj) in _OFFSETS.items():
+        padded = np.full((nx + 2, ny + 2), -1)
+        padded[1:-1, 1:-1] = col
+        shifted = padded[1 + di : 1 + di + nx, 1 + dj : 1 + dj + ny]
+        out[name] = (np.maximum(shifted, 0), shifted >= 0)
+    return out
+
+
+def _pick(responses, colours):
+    """responses[colours[i, j], i, j]."""
+    return jnp.take_along_axis(responses, jnp.asarray(colours)[None], axis=0)[0]
+
+
+class GrowthJacobian(eqx.Module):
+    """The blocks of J̃ (see module docstring), every one a field on the grid."""
+
+    oo_diag: Field
+    oo_south: Field
+    oo_north: Field
+    oo_west: Field
+    oo_east: Field
+    oc: Field
+    co: Field
+    cc: Field
+    mo: Field
+    mc: Field
+    mm: Field
+
+    @classmethod
+    def probe(cls, jvp, shape) -> "GrowthJacobian":
+        """Build J̃ from `jvp(State) -> State` with 2K + 1 JVPs (K colours)."""
+        nx, ny = shape
+        col = colouring(nx, ny)
+        ncol = int(col.max()) + 1
+        masks = jnp.asarray(col[None] == np.arange(ncol)[:, None, None], dtype=float)
+        zeros = jnp.zeros_like(masks)
+        batched = jax.vmap(jvp)
+        r_o = batched(State(o=masks, c=zeros, m=zeros))  # columns of J for o
+        r_c = batched(State(o=zeros, c=masks, m=zeros))  # columns of J for c
+        r_m = jvp(State(o=zeros[0], c=zeros[0], m=jnp.ones(shape)))  # m is pointwise
+        nbr = _neighbour_colours(col)
+        oo = {
+            name: jnp.where(mask, _pick(r_o.o, colours), 0.0)
+            for name, (colours, mask) in nbr.items()
+        }
+        return cls(
+            oo_diag=_pick(r_o.o, col),
+            oo_south=oo["south"],
+            oo_north=oo["north"],
+            oo_west=oo["west"],
+            oo_east=oo["east"],
+            oc=_pick(r_c.o, col),
+            co=_pick(r_o.c, col),
+            cc=_pick(r_c.c, col),
+            mo=_pick(r_o.m, col),
+            mc=_pick(r_c.m, col),
+            mm=r_m.m,
+        )
+
+    def factor(self, a) -> "ShiftedFactor":
+        """Factor `a I − J̃` once; the result solves it for many right-hand sides."""
+        inv_cc = 1.0 / (a - self.cc)
+        diag = a - self.oo_diag - self.oc * self.co * inv_cc
+        o_op = FivePoint(diag, -self.oo_south, -self.oo_north, -self.oo_west, -self.oo_east)
+        return ShiftedFactor(jac=self, a=a, inv_cc=inv_cc, o_factor=o_op.factor())
+
+
+class FivePoint(eqx.Module):
+    """A 5-point operator on the grid: (A u)_ij = diag u_ij + south u_i,j−1 + north
+    u_i,j+1 + west u_i−1,j + east u_i+1,j (neighbours outside the grid are absent)."""
+
+    diag: Field
+    south: Field
+    north: Field
+    west: Field
+    east: Field
+
+    def __call__(self, u: Field) -> Field:
+        z = jnp.zeros_like(u[:, :1])
+        zx = jnp.zeros_like(u[:1])
+        up = jnp.concatenate([u[:, 1:], z], axis=1)
+        down = jnp.concatenate([z, u[:, :-1]], axis=1)
+        right = jnp.concatenate([u[1:], zx], axis=0)
+        left = jnp.concatenate([zx, u[:-1]], axis=0)
+        return self.diag * u + self.south * down + self.north * up + self.west * left + self.east * right
+
+    def factor(self) -> "FivePointFactor":
+        nx = self.diag.shape[0]
+        if nx == 1:
+            return FivePointFactor(op=self, block_inverses=None)
+        blocks = jax.vmap(_tridiagonal_matrix)(self.south, self.diag, self.north)
+
+        def eliminate(prev_inv, inputs):
+            block, west, east_prev = inputs
+            inv = jnp.linalg.inv(block - west[:, None] * prev_inv * east_prev[None, :])
+            return inv, inv
+
+        east_prev = jnp.concatenate([jnp.zeros_like(self.east[:1]), self.east[:-1]], axis=0)
+        _, invs = jax.lax.scan(eliminate, jnp.zeros_like(blocks[0]), (blocks, self.west, east_prev))
+        return FivePointFactor(op=self, block_inverses=invs)
+
+
+def _tridiagonal_matrix(sub, diag, sup):
+    n = diag.shape[0]
+    return jnp.diag(diag) + jnp.diag(sub[1:], -1) + jnp.diag(sup[:-1], 1)
+
+
+class FivePointFactor(eqx.Module):
+    """A factored `FivePoint` operator: tridiagonal (1-D) or block-Thomas inverses (2-D)."""
+
+    op: FivePoint
+    block_inverses: jax.Array | None
+
+    def solve(self, r: Field) -> Field:
+        op = self.op
+        if self.block_inverses is None:
+            dl = op.south.at[:, 0].set(0.0)
+            du = op.north.at[:, -1].set(0.0)
+            return jax.lax.linalg.tridiagonal_solve(dl, op.diag, du, r[..., None])[..., 0]
+        invs = self.block_inverses
+
+        def forward(z_prev, inputs):
+            inv, west, ri = inputs
+            z = inv @ (ri - west * z_prev)
+            return z, z
+
+        _, z = jax.lax.scan(forward, jnp.zeros_like(r[0]), (invs, op.west, r))
+
+        def backward(x_next, inputs):
+            inv, east, zi = inputs
+            x = zi - inv @ (east * x_next)
+            return x, x
+
+        _, x = jax.lax.scan(backward, jnp.zeros_like(r[0]), (invs, op.east, z), reverse=True)
+        return x
+
+
+class ShiftedFactor(eqx.Module):
+    """`a I − J̃`, factored: `solve` eliminates c and m pointwise around the O2 solve."""
+
+    jac: GrowthJacobian
+    a: jax.Array
+    inv_cc: Field
+    o_factor: FivePointFactor
+
+    def solve(self, r):
+        j = self.jac
+        o = self.o_factor.solve(r.o + j.oc * self.inv_cc * r.c)
+        c = self.inv_cc * (r.c + j.co * o)
+        m = (r.m + j.mo * o + j.mc * c) / (self.a - j.mm)
+        return State(o=o, c=c, m=m)
