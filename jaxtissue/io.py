@@ -1,0 +1,193 @@
+"""Files: result datasets, parameter TOML files, summaries, and atomic output folders."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import pathlib
+import shutil
+import tempfile
+import tomllib
+
+import numpy as np
+
+from .params import FIELDS, Params, suggest
+
+UNITS = {
+    "dna_ug_per_g": ("ug/g", "DNA content per wet weight (A.24)"),
+    "collagen_mg_per_g": ("mg/g", "collagen content per wet weight (A.24)"),
+    "E_eff_kPa": ("kPa", "effective flexural modulus 12 EI/(h^3 d) (A.25)"),
+    "EI_N_m2": ("N m^2", "flexural rigidity at the mid-section (A.25)"),
+    "profile_o": ("1", "O2 o = rho_o/(5 rho_o,ext) at the mid-section"),
+    "profile_c": ("1", "cell density c = rho_c/rho_c,seed at the mid-section"),
+    "profile_m": ("1", "ECM m = rho_m/rho_m,max at the mid-section"),
+    "o": ("1", "final O2 field"),
+    "c": ("1", "final cell-density field"),
+    "m": ("1", "final ECM field"),
+}
+
+
+class InputError(ValueError):
+    """A user's input is wrong; the message is one line naming what and why."""
+
+
+def result_to_xarray(result):
+    """The `Result` as an `xarray.Dataset`; units and the parameters in attributes."""
+    import xarray as xr
+
+    series = {k: ("time_s", np.asarray(getattr(result, k))) for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2")}
+    profiles = {k: (("time_s", "y_cm"), np.asarray(getattr(result, k))) for k in ("profile_o", "profile_c", "profile_m")}
+    fields = {k: (("x_cm", "y_cm"), np.asarray(getattr(result.final, k))) for k in ("o", "c", "m")}
+    ds = xr.Dataset(
+        {**series, **profiles, **fields},
+        coords=dict(time_s=np.asarray(result.ts), x_cm=np.asarray(result.x_cm), y_cm=np.asarray(result.y_cm)),
+    )
+    for name, (unit, doc) in UNITS.items():
+        ds[name].attrs.update(units=unit, long_name=doc)
+    ds["time_s"].attrs.update(units="s", long_name="time since seeding")
+    ds["x_cm"].attrs.update(units="cm", long_name="position along the strip (cell centre)")
+    ds["y_cm"].attrs.update(units="cm", long_name="position across the thickness (cell centre)")
+    ds.attrs.update(result.params.as_dict())
+    ds.attrs["solver_steps"] = int(np.asarray(result.num_steps))
+    ds.attrs["solver_failed"] = int(bool(np.asarray(result.failed)))
+    return ds
+
+
+def write_params_toml(params: Params, path) -> None:
+    """A TOML file loadable by `read_params_toml` (and `jaxtissue simulate --params`)."""
+    lines = ["# jaxtissue model parameters (units: see `jaxtissue params`)", "[parameters]"]
+    for name, value in params.as_dict().items():
+        lines.append(f"{name} = {value!r}  # {FIELDS[name].unit}")
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_params_toml(path, base: Params | None = None) -> Params:
+    """Parameters from a TOML file: a `[parameters]` table (or top-level keys) of
+    `name = value`; names not given keep `base` (default: the paper's values)."""
+    path = pathlib.Path(path)
+    try:
+        with open(path, "rb") as f:
+            doc = tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such parameter file") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a parameter file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"{path}: not valid TOML ({err})") from None
+    table = doc.get("parameters", doc)
+    if not isinstance(table, dict):
+        raise InputError(f"{path}: [parameters] must be a table of name = value")
+    changes = {}
+    for name, value in table.items():
+        if name not in FIELDS:
+            raise InputError(f"{path}: unknown parameter {name!r}; {suggest(name, FIELDS)}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{path}: parameter {name} = {value!r} must be a number ({FIELDS[name].unit})")
+        changes[name] = float(value)
+    return make_params(changes, base, where=str(path))
+
+
+def parse_assignment(text: str) -> tuple[str, float]:
+    """`NAME=VALUE` from the command line."""
+    name, sep, value = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise InputError(f"--set {text!r}: expected NAME=VALUE")
+    if name not in FIELDS:
+        raise InputError(f"--set {name}: unknown parameter; {suggest(name, FIELDS)}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise InputError(f"--set {name}={value}: {value!r} is not a number ({FIELDS[name].unit})") from None
+    return name, number
+
+
+def make_params(changes: dict, base: Params | None = None, where: str = "--set") -> Params:
+    """Validated parameters; a bad value is an `InputError` naming where it came from."""
+    base = Params() if base is None else base
+    try:
+        return base.replace(**changes)
+    except ValueError as err:
+        raise InputError(f"{where}: {err}") from None
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    arr = np.asarray(value)
+    if arr.dtype.kind in "fiub":
+        return arr.tolist()
+    return value
+
+
+def write_json(path, data) -> None:
+    atomic_write_text(path, json.dumps(_jsonable(data), indent=2) + "\n")
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write_text(path, text: str) -> None:
+    """Write via a temporary file in the same folder, then rename."""
+    path = pathlib.Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def check_output_folder(out, overwrite: bool) -> pathlib.Path:
+    """Fail early (an `InputError`) if `out` cannot be written or would be clobbered."""
+    out = pathlib.Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"--out {out}: folder exists and is not empty (pass --overwrite to replace it)")
+    parent = out.resolve().parent
+    if not parent.is_dir():
+        raise InputError(f"--out {out}: parent folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"--out {out}: cannot write in {parent}")
+    return out
+
+
+@contextlib.contextmanager
+def output_folder(out, overwrite: bool = False):
+    """Yield a temporary sibling folder; on success it replaces `out` in one rename.
+
+    If anything fails, the temporary folder is removed and `out` is untouched."""
+    out = check_output_folder(out, overwrite)
+    tmp = pathlib.Path(tempfile.mkdtemp(dir=out.resolve().parent, prefix=f".{out.name}.partial-"))
+    os.chmod(tmp, 0o777 & ~_umask())
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        os.replace(out, old)
+    os.replace(tmp, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_netcdf(dataset, path) -> None:
+    """`dataset` to NetCDF-4 (h5netcdf) via a temporary file, then rename."""
+    path = pathlib.Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    dataset.to_netcdf(tmp, engine="h5netcdf")
+    os.replace(tmp, path)

@@ -1,0 +1,21 @@
+"""Shared test utilities."""
+
+import numpy as np
+
+
+def observed_orders(hs, errors):
+    """log(e_i/e_{i+1}) / log(h_i/h_{i+1}) for successive refinements."""
+    hs, errors = np.asarray(hs, float), np.asarray(errors, float)
+    return np.log(errors[:-1] / errors[1:]) / np.log(hs[:-1] / hs[1:])
+
+
+def relative_error(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))
+
+
+def frozen_cells(**changes):
+    """Paper parameters with cell and ECM kinetics switched off (c, m stay put)."""
+    import jaxtissue as jt
+
+    return jt.paper_parameters(k_c_max=0.0, k_a=0.0, k_m0=0.0, **changes)

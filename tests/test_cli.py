@@ -1,0 +1,125 @@
+"""The `jaxtissue` command: outputs, files that load back, and one-line errors."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import xarray as xr
+
+import jaxtissue as jt
+from jaxtissue.cli import main
+from jaxtissue.io import read_params_toml
+
+
+def run_cli(*args):
+    """Run the real console entry point in a subprocess: (exit code, stdout, stderr)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxtissue.cli", *args], capture_output=True, text=True, timeout=600
+    )
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def static_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "static"
+    code, stdout, stderr = run_cli(
+        "simulate", "--regime", "static", "--t-end", "1.9e6", "--grid", "1", "20", "--set", "k_m0=2e-7", "--out", str(out)
+    )
+    assert code == 0, stderr
+    return out
+
+
+def test_simulate_writes_every_file(static_run):
+    names = {p.name for p in static_run.iterdir()}
+    assert {"result.nc", "summary.json", "params.toml", "profiles.png", "time_series.png"} <= names
+    summary = json.loads((static_run / "summary.json").read_text())
+    for key in ("times_s", "dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "params"):
+        assert key in summary
+    assert jt.THREE_WEEKS_S in summary["times_s"]
+    assert summary["params"]["k_m0"] == 2e-7
+    ds = xr.open_dataset(static_run / "result.nc", engine="h5netcdf")
+    assert ds["E_eff_kPa"].attrs["units"] == "kPa"
+    assert float(ds["collagen_mg_per_g"][-1]) == pytest.approx(summary["collagen_mg_per_g"][-1])
+
+
+def test_params_file_round_trips(static_run, tmp_path):
+    p = read_params_toml(static_run / "params.toml")
+    assert p.k_m0 == 2e-7 and p.k_c_max == 1.24e-5
+    code = main(["simulate", "--params", str(static_run / "params.toml"), "--t-end", "2e4", "--grid", "1", "8", "--out", str(tmp_path / "again")])
+    assert code == 0
+
+
+def exit_code(argv):
+    """`main(argv)`'s exit code, whether it returns it or argparse exits with it."""
+    try:
+        return main(argv)
+    except SystemExit as stop:
+        return stop.code
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--set", "k_cmax=1e-5"], ["k_cmax", "did you mean 'k_c_max'"]),
+        (["--set", "o_m=1.5"], ["o_m", "1.5", "(0, 1)"]),
+        (["--set", "k_a=fast"], ["k_a", "not a number"]),
+        (["--set", "k_a"], ["NAME=VALUE"]),
+        (["--t-end", "0"], ["--t-end", "positive"]),
+        (["--t-end", "-5"], ["--t-end", "positive"]),
+        (["--grid", "1", "2"], ["NY", "at least 3"]),
+        (["--params", "/nonexistent/p.toml"], ["no such parameter file"]),
+        (["--regime", "dynamic"], ["--regime", "invalid choice"]),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys, args, words):
+    out = tmp_path / "never"
+    code = exit_code(["simulate", *args, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("jaxtissue: error:"), err
+    for word in words:
+        assert word in err
+    assert not out.exists()
+
+
+def test_malformed_and_unknown_params_files(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("k_a = = 3\n")
+    assert main(["simulate", "--params", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "not valid TOML" in capsys.readouterr().err
+    bad.write_text("[parameters]\nkm0 = 1e-7\n")
+    assert main(["simulate", "--params", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "did you mean 'k_m0'" in capsys.readouterr().err
+    bad.write_text("[parameters]\nk_m0 = 'fast'\n")
+    assert main(["simulate", "--params", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "must be a number" in capsys.readouterr().err
+
+
+def test_existing_output_is_never_clobbered(static_run, capsys):
+    before = (static_run / "summary.json").read_text()
+    assert main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", str(static_run)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert (static_run / "summary.json").read_text() == before
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write anywhere")
+def test_unwritable_output(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    assert main(["simulate", "--t-end", "2e4", "--out", str(locked / "out")]) == 2
+    assert "cannot write" in capsys.readouterr().err
+
+
+def test_output_in_missing_folder(tmp_path, capsys):
+    assert main(["simulate", "--t-end", "2e4", "--out", str(tmp_path / "a" / "b")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_params_table_lists_every_field(capsys):
+    assert main(["params"]) == 0
+    out = capsys.readouterr().out
+    for name in ("k_c_max", "lumping_C", "E_m0_kPa_per_ug_g", "cm^2/s"):
+        assert name in out

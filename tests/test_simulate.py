@@ -1,0 +1,75 @@
+"""End-to-end static culture against the independent SciPy solution, and the API."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy_reference
+
+import jaxtissue as jt
+from jaxtissue.simulate import save_times
+
+
+@pytest.fixture(scope="module")
+def fine_static():
+    return jt.simulate(jt.paper_parameters(), jt.Protocol.static(), t_end_s=2.0e6, grid=jt.Grid(ny=200))
+
+
+def test_three_week_values_match_scipy_method_of_lines(fine_static):
+    ref = scipy_reference.three_week_values(ny=400)
+    i = fine_static.index(jt.THREE_WEEKS_S)
+    assert float(fine_static.ts[i]) == jt.THREE_WEEKS_S
+    for key in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa"):
+        ours = float(getattr(fine_static, key)[i])
+        assert ours == pytest.approx(float(ref[key]), rel=5e-3), key
+        assert ours == pytest.approx(float(ref[key]), rel=1e-3), key  # in fact far closer
+
+
+def test_save_times():
+    ts = save_times(2.0e6, 2.0e4)
+    assert ts[0] == 0 and ts[-1] == 2.0e6 and jt.THREE_WEEKS_S in ts
+    assert np.all(np.diff(ts) > 0) and len(ts) == 102
+    assert jt.THREE_WEEKS_S not in save_times(1.0e6, 2.0e4)
+
+
+def test_initial_values_and_trends(fine_static):
+    r = fine_static
+    assert float(r.dna_ug_per_g[0]) == pytest.approx(536.0)
+    assert float(r.collagen_mg_per_g[0]) == 0.0
+    assert float(r.E_eff_kPa[0]) == pytest.approx(174.0)
+    assert np.all(np.diff(np.asarray(r.collagen_mg_per_g)) >= 0)  # ECM only accumulates
+    assert np.all(np.diff(np.asarray(r.EI_N_m2)) >= 0)
+    assert not bool(r.failed)
+    # ECM forms near the surfaces, where O2 exceeds the threshold (Fig. 5)
+    m = np.asarray(r.profile_m[-1])
+    assert m[0] > m[len(m) // 2] and m[-1] > m[len(m) // 2]
+
+
+def test_to_xarray_has_units(fine_static):
+    ds = fine_static.to_xarray()
+    assert ds["collagen_mg_per_g"].attrs["units"] == "mg/g"
+    assert ds["time_s"].attrs["units"] == "s"
+    assert ds["profile_m"].dims == ("time_s", "y_cm")
+    assert ds.attrs["k_c_max"] == pytest.approx(1.24e-5)
+
+
+def test_jit_and_vmap_over_parameters():
+    grid = jt.Grid(ny=16)
+    base = jax.tree_util.tree_map(jnp.asarray, jt.paper_parameters())
+    k_m0s = jnp.array([1.0e-7, 1.675e-7, 3.0e-7])
+    batched = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (3,)), base)
+    batched = jax.tree_util.tree_map(lambda x: x, batched.replace(k_m0=k_m0s))
+    run = jax.jit(jax.vmap(lambda p: jt.simulate(p, t_end_s=5e5, grid=grid).collagen_mg_per_g[-1]))
+    out = run(batched)
+    singles = [float(jt.simulate(base.replace(k_m0=k), t_end_s=5e5, grid=grid).collagen_mg_per_g[-1]) for k in k_m0s]
+    np.testing.assert_allclose(np.asarray(out), singles, rtol=1e-6)
+    assert np.all(np.diff(np.asarray(out)) > 0)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="t_end_s"):
+        jt.simulate(jt.paper_parameters(), t_end_s=-1.0)
+    with pytest.raises(ValueError, match="grid ny"):
+        jt.Grid(nx=1, ny=1)
+    with pytest.raises(ValueError, match="regime"):
+        jt.Protocol(regime="dynamic")
