@@ -1,0 +1,145 @@
+"""Static culture, 1-D transmural grid (ny = 200), 3 weeks: jaxtissue versus SciPy.
+
+Both sides solve the same equations on the same grid in the same run, over the same
+ladder of tolerances; for each accuracy target (max relative error of the 3-week DNA,
+collagen and E_eff against a tight reference) the fastest run of each that reaches it
+is compared:
+
+* forward: `jt.simulate` (jitted, after compilation) versus `solve_ivp(BDF)` with the
+  Jacobian's sparsity pattern (`scipy_reference.py`);
+* gradient of 3-week collagen with respect to all kinetic parameters: one reverse-mode
+  pass versus central finite differences of the SciPy solve (2 solves per parameter),
+  each at the loosest tolerance whose gradient is within `GRAD_TARGET` of a tight one;
+* compile time of the jitted forward run.
+
+    python benchmarks/static.py
+"""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+import scipy_reference  # noqa: E402
+
+import jaxtissue as jt  # noqa: E402
+
+NY = 200
+T = jt.THREE_WEEKS_S
+TARGETS = (1e-4, 3e-5, 1e-5, 3e-6)
+GRAD_TARGET = 1e-3
+KINETIC = ["k_c_max", "k_a", "n_moser", "o_c", "k_i", "Q_o", "o_h", "k_m0", "o_m", "D_o0", "c_max"]
+KEYS = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa")
+LADDER = [1e-3, 5e-4, 2e-4, 1e-4, 5e-5, 2e-5, 1e-5, 5e-6, 2e-6, 1e-6]
+
+
+def best_time(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def rel_err(values, ref):
+    return max(abs(values[k] - ref[k]) / abs(ref[k]) for k in KEYS)
+
+
+def jax_forward(rtol):
+    options = jt.SolverOptions(rtol=rtol, atol=rtol * 1e-3)
+
+    @jax.jit
+    def run(p):
+        r = jt.simulate(p, t_end_s=T, grid=jt.Grid(ny=NY), options=options)
+        return {k: getattr(r, k)[-1] for k in KEYS}
+
+    return run
+
+
+def jax_collagen(rtol):
+    options = jt.SolverOptions(rtol=rtol, atol=rtol * 1e-3)
+    return lambda p: jt.simulate(p, t_end_s=T, grid=jt.Grid(ny=NY), options=options).collagen_mg_per_g[-1]
+
+
+def scipy_values(rtol, **changes):
+    return scipy_reference.three_week_values(ny=NY, rtol=rtol, atol=rtol * 1e-3, **changes)
+
+
+def scipy_fd_gradient(rtol, rel_step=1e-4):
+    base = jt.paper_parameters()
+    grad = {}
+    for name in KINETIC:
+        v = getattr(base, name)
+        h = rel_step * abs(v)
+        up = scipy_values(rtol, **{name: v + h})["collagen_mg_per_g"]
+        down = scipy_values(rtol, **{name: v - h})["collagen_mg_per_g"]
+        grad[name] = (up - down) / (2 * h)
+    return grad
+
+
+def grad_err(grad, ref):
+    return max(abs(grad[k] - ref[k]) / abs(ref[k]) for k in KINETIC)
+
+
+def main():
+    p = jax.tree_util.tree_map(jnp.asarray, jt.paper_parameters())
+    print(f"static culture, nx = 1, ny = {NY}, t = 3 weeks")
+    reference = {k: float(v) for k, v in scipy_values(1e-11).items()}
+    print("reference (SciPy, rtol 1e-11):", {k: round(v, 6) for k, v in reference.items()})
+
+    # ---- compile time (default tolerance)
+    run = jax_forward(1e-5)
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(p))
+    compile_s = time.perf_counter() - t0 - best_time(lambda: jax.block_until_ready(run(p)), 3)
+
+    # ---- forward: work-precision ladders of both, then the fastest run at each target
+    jax_runs, sp_runs = [], []
+    for rtol in LADDER:
+        run = jax_forward(rtol)
+        values = {k: float(v) for k, v in run(p).items()}
+        jax_runs.append((rel_err(values, reference), best_time(lambda: jax.block_until_ready(run(p)), 10), rtol))
+        sp_runs.append((rel_err(scipy_values(rtol), reference), best_time(lambda: scipy_values(rtol), 3), rtol))
+    print("\nwork-precision (max rel. error of the 3-week values, best time)")
+    print(f"{'rtol':>8} | {'jaxtissue err':>13} {'ms':>8} | {'SciPy BDF err':>13} {'ms':>8}")
+    for (je, jt_, r), (se, st, _) in zip(jax_runs, sp_runs):
+        print(f"{r:8.0e} | {je:13.1e} {jt_ * 1e3:8.2f} | {se:13.1e} {st * 1e3:8.2f}")
+    print("\nfastest run reaching each accuracy target")
+    for target in TARGETS:
+        t_jax = min((t for e, t, _ in jax_runs if e <= target), default=float("nan"))
+        t_sp = min((t for e, t, _ in sp_runs if e <= target), default=float("nan"))
+        print(f"target {target:6.0e}: jaxtissue {t_jax * 1e3:7.2f} ms, SciPy {t_sp * 1e3:7.2f} ms, speed-up {t_sp / t_jax:5.1f}x   (goal >= 10x)")
+    print(f"compile time of the jitted forward run: {compile_s:.1f} s   (goal < 15 s)")
+
+    # ---- gradient at matched accuracy
+    g_ref = jax.grad(jax_collagen(1e-10))(p)  # checked against FD in tests/test_gradients.py
+    grad_ref = {n: float(getattr(g_ref, n)) for n in KINETIC}
+    for rtol in LADDER[1:]:
+        g = jax.jit(jax.grad(jax_collagen(rtol)))
+        gval = {n: float(getattr(g(p), n)) for n in KINETIC}
+        if grad_err(gval, grad_ref) <= GRAD_TARGET:
+            break
+    jax.block_until_ready(g(p))
+    t_grad = best_time(lambda: jax.block_until_ready(g(p)), 10)
+    for fd_rtol in LADDER:
+        if fd_rtol > 1e-5:
+            continue  # FD of an adaptive solve needs tolerances well below its step
+        fd = scipy_fd_gradient(fd_rtol)
+        if grad_err(fd, grad_ref) <= GRAD_TARGET:
+            break
+    t_fd = best_time(lambda: scipy_fd_gradient(fd_rtol), 1)
+    print(f"\ngradient of 3-week collagen w.r.t. {len(KINETIC)} kinetic parameters")
+    print(f"gradient  jaxtissue reverse mode (rtol {rtol:g}, err {grad_err(gval, grad_ref):.1e}): {t_grad * 1e3:8.1f} ms")
+    print(f"gradient  SciPy central FD, {2 * len(KINETIC)} solves (rtol {fd_rtol:g}, err {grad_err(fd, grad_ref):.1e}): {t_fd * 1e3:8.1f} ms")
+    print(f"gradient speed-up: {t_fd / t_grad:.1f}x   (goal >= 20x)")
+
+
+if __name__ == "__main__":
+    main()
