@@ -76,7 +76,7 @@ class StaticProblem:
 
     def sparsity(self):
         n = 3 * self.ny
-        return scipy.sparse.diags([1] * 11, list(range(-5, 6)), shape=(n, n), format="csc")
+        return scipy.sparse.diags([1.0] * 11, list(range(-5, 6)), shape=(n, n), format="csc")
 
     def initial(self):
         u = np.empty(3 * self.ny)
