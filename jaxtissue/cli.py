@@ -1,7 +1,9 @@
 """The `jaxtissue` command.
 
     jaxtissue params                         the parameter table (units, ranges, sources)
-    jaxtissue simulate --regime static …     one culture, to a folder of files and figures
+    jaxtissue simulate --regime static|flex … one culture, to a folder of files and figures
+    jaxtissue cycle …                        one loading cycle of the poroelastic beam
+    jaxtissue reproduce --out DIR            the paper's study: six cases, figures, report
 
 A mistake in the input gives one line on stderr and exit code 2; a failed solve gives
 one line and exit code 1. Output folders appear complete or not at all.
@@ -52,9 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_params)
 
     s = sub.add_parser("simulate", help="simulate one culture into a folder of files and figures")
-    s.add_argument("--regime", choices=["static"], default="static", help="culture regime (default: static)")
+    s.add_argument("--regime", choices=["static", "flex"], default="static", help="culture regime (default: static)")
     s.add_argument("--t-end", type=_positive_float, default=2.0e6, metavar="S", help="end of culture in seconds (default 2.0e6)")
-    s.add_argument("--grid", type=_grid_size, nargs=2, default=DEFAULT_GRID, metavar=("NX", "NY"), help="growth grid cells along x and across y (default 1 40)")
+    s.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid cells along x and across y (default 1 40 static, 50 40 flex)")
+    _flex_arguments(s)
+    s.add_argument("--lumping", choices=["dispersive", "paper"], default="dispersive", help="cycle-to-growth coupling rule (default dispersive)")
     s.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
     s.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file (e.g. a params.toml written here)")
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
@@ -62,7 +66,44 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
     s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser("cycle", help="one loading cycle of the poroelastic beam, with figures")
+    _flex_arguments(c)
+    c.add_argument("--ecm", type=float, default=0.0, metavar="VALUE", help="uniform ECM m in [0, 1] of the strip (default 0: bare scaffold)")
+    c.add_argument("--ny", type=_grid_size, default=40, help="cells across the thickness (default 40)")
+    c.add_argument("--segments", type=_grid_size, default=50, help="beam segments along the strip (default 50)")
+    c.add_argument("--steps", type=_grid_size, default=200, help="time steps per cycle (default 200)")
+    c.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
+    c.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
+    c.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
+    c.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    c.set_defaults(func=cmd_cycle)
+
+    r = sub.add_parser("reproduce", help="the paper's static and flex study into figures and a report")
+    r.add_argument("--t-end", type=_positive_float, default=2.0e6, metavar="S", help="end of culture in seconds (default 2.0e6)")
+    r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
+    r.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
+    r.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
+    r.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
+    r.set_defaults(func=cmd_reproduce)
     return parser
+
+
+def _flex_arguments(parser):
+    parser.add_argument("--period", type=_positive_float, default=1.0, metavar="S", help="flexure period T in s (default 1)")
+    parser.add_argument("--post-displacement", type=float, default=5.0, metavar="MM", help="post displacement amplitude in mm (default 5)")
+    parser.add_argument("--hold-fraction", type=float, default=0.05, metavar="F", help="hold at rest and at full flexure, fraction of T in [0, 0.25) (default 0.05)")
+    parser.add_argument("--pins", choices=["centroid", "bottom"], default="centroid", help="where the posts pin the strip (default centroid)")
+
+
+def _flex_protocol(args):
+    from .simulate import Protocol
+
+    try:
+        return Protocol.flex(args.period, args.post_displacement, args.hold_fraction, getattr(args, "lumping", "dispersive"), args.pins)
+    except ValueError as err:
+        raise InputError(str(err).replace("protocol post_displacement_mm", "--post-displacement").replace("protocol hold_fraction", "--hold-fraction").replace("protocol period_s", "--period")) from None
 
 
 def cmd_params(args) -> int:
@@ -89,14 +130,15 @@ def cmd_simulate(args) -> int:
     from .simulate import Protocol, SolverOptions, simulate
 
     params = load_params(args)
-    nx, ny = args.grid
+    protocol = Protocol.static() if args.regime == "static" else _flex_protocol(args)
+    nx, ny = args.grid if args.grid else ((1, 40) if args.regime == "static" else (50, 40))
     if ny < 3:
         raise InputError(f"--grid NY = {ny} must be at least 3")
     grid = Grid(nx=nx, ny=ny)
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     result = simulate(
-        params, Protocol.static(), t_end_s=args.t_end, grid=grid,
+        params, protocol, t_end_s=args.t_end, grid=grid,
         options=SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3), progress=progress,
     )
     if bool(result.failed):
@@ -120,7 +162,7 @@ def summary(result, regime: str) -> dict:
     """The `summary.json` of a run: series, 3-week values (when reached) and parameters."""
     from .simulate import THREE_WEEKS_S
 
-    keys = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2")
+    keys = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "post_force_max_N")
     out = {"regime": regime, "times_s": result.ts}
     out.update({k: getattr(result, k) for k in keys})
     if float(result.ts[-1]) >= THREE_WEEKS_S:
@@ -129,6 +171,61 @@ def summary(result, regime: str) -> dict:
     out["solver_steps"] = int(result.num_steps)
     out["params"] = result.params.as_dict()
     return out
+
+
+def cmd_cycle(args) -> int:
+    import jax.numpy as jnp
+
+    from . import io, plots
+    from .beam import Beam, BeamGrid, Geometry, Material, loading_cycle
+
+    params = load_params(args)
+    protocol = _flex_protocol(args)
+    if not 0.0 <= args.ecm <= 1.0:
+        raise InputError(f"--ecm {args.ecm:g} must be in [0, 1]")
+    if args.ny < 3 or args.segments < 4 or args.segments % 2 or args.steps < 8:
+        raise InputError("--ny must be >= 3, --segments an even number >= 4, --steps >= 8")
+    io.check_output_folder(args.out, args.overwrite)
+    grid = BeamGrid(n_segments=args.segments, steps_per_cycle=args.steps)
+    material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), args.ecm), params)
+    beam = Beam(Geometry.from_params(params, protocol.pins), material, grid)
+    cycle = loading_cycle(beam, protocol.period_s, protocol.post_displacement_mm * 1e-3, protocol.hold_fraction, keep_fields=True)
+    if bool(cycle.failed):
+        print("jaxtissue: error: the beam's Newton solve did not converge; try more --steps or a smaller --post-displacement. Nothing was written.", file=sys.stderr)
+        return 1
+    summary = {
+        "midspan_deflection_mm_max": 1e3 * float(jnp.max(cycle.midspan_deflection_m)),
+        "post_force_max_N": float(cycle.post_force_max_N),
+        "cycle_mean_velocity_cm_s_max": 100 * float(jnp.max(jnp.abs(cycle.mean_vy))),
+        "cycle_mean_abs_velocity_cm_s_max": 100 * float(jnp.max(cycle.mean_abs_vy)),
+        "surface_strain_max": float(jnp.max(cycle.surface_strain)),
+        "period_s": args.period, "post_displacement_mm": args.post_displacement,
+        "hold_fraction": args.hold_fraction, "ecm": args.ecm, "params": params.as_dict(),
+        "t_s": cycle.t, "post_displacement_mm_t": 1e3 * cycle.u, "post_force_N_t": cycle.post_force_N,
+        "midspan_deflection_mm_t": 1e3 * cycle.midspan_deflection_m,
+    }
+    with io.output_folder(args.out, args.overwrite) as tmp:
+        io.write_json(tmp / "summary.json", summary)
+        plots.cycle_figures(cycle, beam, tmp / "shape.png", tmp / "flow.png")
+    print(f"wrote {args.out}/ (summary.json, shape.png, flow.png)")
+    return 0
+
+
+def cmd_reproduce(args) -> int:
+    from . import io, reproduce
+
+    params = load_params(args)
+    io.check_output_folder(args.out, args.overwrite)
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
+    failed = [name for name, r in results.items() if bool(r.failed)]
+    if failed:
+        print(f"jaxtissue: error: the solve failed for {', '.join(failed)}; nothing was written.", file=sys.stderr)
+        return 1
+    with io.output_folder(args.out, args.overwrite) as tmp:
+        reproduce.write(results, params, tmp)
+    print(f"wrote {args.out}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
+    return 0
 
 
 def main(argv=None) -> int:

@@ -156,8 +156,10 @@ def check_output_folder(out, overwrite: bool) -> pathlib.Path:
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise InputError(f"--out {out}: folder exists and is not empty (pass --overwrite to replace it)")
     parent = out.resolve().parent
-    if not parent.is_dir():
-        raise InputError(f"--out {out}: parent folder {parent} does not exist")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"--out {out}: cannot create folder {parent} ({err.strerror})") from None
     if not os.access(parent, os.W_OK):
         raise InputError(f"--out {out}: cannot write in {parent}")
     return out

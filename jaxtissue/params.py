@@ -86,7 +86,7 @@ FIELDS: dict[str, FieldInfo] = {
     "k_hyd_t_cm_s": _pos("cm/s", "hydraulic conductivity of the tissue (2.8)"),
     "p_ext_kPa": _nonneg("kPa", "external pore pressure, a reference level (§4)"),
     # coupling (§5)
-    "lumping_C": _nonneg("1", "lumping constant C of the cycle-to-growth coupling (2.15)"),
+    "lumping_C": _nonneg("1", "lumping constant C of the coupling (2.15); default set for the dispersive rule so that flex/static 3-week collagen = 1.55 (calibrate/lumping_C.py); the paper's 70 belongs to its literal rule"),
     # scales and assay conversions (§2, §3)
     "rho_o_ext_mol_cm3": _pos("mol/cm^3", "O2 concentration of medium at 20 % O2 (§2 scale)"),
     "rho_c_seed_cells_cm3": _pos("cells/cm^3", "seeding cell density, c = 1 (§2 scale)"),
@@ -132,7 +132,7 @@ class Params(eqx.Module):
     k_hyd_s_cm_s: float = 3.66e-6
     k_hyd_t_cm_s: float = 3.66e-7
     p_ext_kPa: float = 101.325
-    lumping_C: float = 70.0
+    lumping_C: float = 0.3264
     rho_o_ext_mol_cm3: float = 2.10e-7
     rho_c_seed_cells_cm3: float = 70.5e6
     rho_m_max_mg_g: float = 108.3

@@ -73,3 +73,84 @@ def time_series(results: dict, path):
     fig.suptitle("Bulk contents and stiffness, model and Engelmayr et al. (mean ± SD)")
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def rigidity_and_force(results: dict, path):
+    """Flexural rigidity EI and peak post force versus time (Fig. 10)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    for (label, result), colour in zip(results.items(), plt.cm.tab10.colors):
+        days = np.asarray(result.ts) / DAY_S
+        axes[0].plot(days, 1e6 * np.asarray(result.EI_N_m2), color=colour, label=label)
+        if label != "static":
+            axes[1].plot(days, 1e3 * np.asarray(result.post_force_max_N), color=colour, label=label)
+    axes[0].set_ylabel("EI at mid-section (N mm²)")
+    axes[1].set_ylabel("peak post force (mN)")
+    for ax in axes:
+        ax.set_xlabel("time (days)")
+        ax.legend(fontsize=7)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def ecm_maps(results: dict, path):
+    """The final ECM field over the strip for each case (Fig. 8)."""
+    n = len(results)
+    fig, axes = plt.subplots(n, 1, figsize=(10, 1.6 * n + 0.6), constrained_layout=True, squeeze=False)
+    vmax = max(float(np.max(np.asarray(r.final.m))) for r in results.values())
+    for ax, (label, r) in zip(axes[:, 0], results.items()):
+        x_mm, y_mm = 10 * np.asarray(r.x_cm), 10 * np.asarray(r.y_cm)
+        m = np.asarray(r.final.m)
+        if m.shape[0] == 1:
+            m = np.repeat(m, 2, axis=0)
+            x_mm = np.array([-12.5, 12.5])
+        im = ax.pcolormesh(x_mm, y_mm, m.T, shading="nearest", vmin=0, vmax=vmax, cmap="magma")
+        ax.set_title(f"{label}: ECM m at day {float(r.ts[-1]) / DAY_S:.1f}", fontsize=9)
+        ax.set_ylabel("y (mm)")
+        ax.set_aspect("auto")
+    axes[-1, 0].set_xlabel("x along the strip (mm)")
+    fig.colorbar(im, ax=axes[:, 0].tolist(), label="m (-)")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def cycle_figures(cycle, beam, shape_path, flow_path):
+    """One loading cycle: beam shapes, post displacement and force (Fig. 6, left), and
+    the seepage velocity across the mid-section over the cycle (Fig. 6, right)."""
+    import jax.numpy as jnp
+
+    t = np.asarray(cycle.t)
+    theta = np.asarray(cycle.fields["theta"])
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    for k in np.linspace(0, len(t) - 1, 9).astype(int):
+        x, y = beam.shape(jnp.concatenate([jnp.asarray(theta[k]), jnp.zeros(1)]))
+        axes[0].plot(1e3 * np.asarray(x), 1e3 * np.asarray(y), label=f"t = {t[k]:.2f} s")
+    axes[0].set_xlabel("x (mm)")
+    axes[0].set_ylabel("y (mm)")
+    axes[0].set_aspect("equal")
+    axes[0].legend(fontsize=6, ncol=2)
+    axes[1].plot(t, 1e3 * np.asarray(cycle.u), label="post displacement (mm)")
+    axes[1].plot(t, 1e3 * np.asarray(cycle.midspan_deflection_m), label="mid-span deflection (mm)")
+    axes[1].set_xlabel("t (s)")
+    axes[1].legend(fontsize=8)
+    axes[2].plot(t, 1e3 * np.asarray(cycle.post_force_N))
+    axes[2].set_xlabel("t (s)")
+    axes[2].set_ylabel("post force (mN)")
+    fig.savefig(shape_path, dpi=120)
+    plt.close(fig)
+
+    mid = theta.shape[1] // 2 - 1
+    vy = 100 * np.asarray(cycle.fields["vy"])[:, mid, :]  # cm/s
+    y_mm = 1e3 * np.asarray(beam.geometry.y_cells(beam.ny))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), constrained_layout=True)
+    lim = np.abs(vy).max() or 1.0
+    im = axes[0].pcolormesh(t, y_mm, vy.T, shading="nearest", cmap="RdBu_r", vmin=-lim, vmax=lim)
+    fig.colorbar(im, ax=axes[0], label="v_f,y (cm/s)")
+    axes[0].set_xlabel("t (s)")
+    axes[0].set_ylabel("y at mid-section (mm)")
+    axes[1].plot(100 * np.asarray(cycle.mean_vy)[mid], y_mm, label="(1/T)∫ v_f,y dt")
+    axes[1].plot(100 * np.asarray(cycle.mean_abs_vy)[mid], y_mm, label="(1/T)∫ |v_f,y| dt")
+    axes[1].set_xlabel("cycle-mean velocity (cm/s)")
+    axes[1].legend(fontsize=8)
+    fig.suptitle("Seepage velocity across the mid-section over one cycle from rest")
+    fig.savefig(flow_path, dpi=120)
+    plt.close(fig)

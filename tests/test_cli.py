@@ -113,9 +113,12 @@ def test_unwritable_output(tmp_path, capsys):
     assert "cannot write" in capsys.readouterr().err
 
 
-def test_output_in_missing_folder(tmp_path, capsys):
-    assert main(["simulate", "--t-end", "2e4", "--out", str(tmp_path / "a" / "b")]) == 2
-    assert "does not exist" in capsys.readouterr().err
+def test_output_parents_are_created_but_not_through_a_file(tmp_path, capsys):
+    assert main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", str(tmp_path / "a" / "b")]) == 0
+    assert (tmp_path / "a" / "b" / "summary.json").exists()
+    (tmp_path / "file").write_text("x")
+    assert main(["simulate", "--t-end", "2e4", "--out", str(tmp_path / "file" / "b")]) == 2
+    assert "cannot create folder" in capsys.readouterr().err
 
 
 def test_params_table_lists_every_field(capsys):

@@ -1,0 +1,345 @@
+"""The large-deformation poroelastic beam and one loading cycle (MODEL.md §4).
+
+**Kinematics.** A geometrically exact, inextensible (elastica) beam along the arc
+length s ∈ [0, L], discretised into `n_segments` straight segments of angle θ_k; the
+curvature lives on the interior nodes, κ_i = (θ_i − θ_{i−1})/ds. Both posts are pins on
+one line; the moving post shortens the chord by u_M(t) (A.22).
+
+**Equilibrium.** With compressive post force P along the chord, the moment at node i is
+M_i = −P (y_i + e): e = 0 for pins at the centroid line (default), e = h/2 for pins at
+the bottom corners (as the paper's model, to first order in the end rotation).
+
+**Section.** Across the thickness at each interior node, on the growth grid's ny cells:
+the fibre strain ε = −(κ − κ₀) y, the effective stress of a neo-Hookean fibre
+σ' = (E'/3)(λ − λ⁻²), λ = 1 + ε (slope E' = E/(1 − ν²) at ε = 0; or `"linear"`), and
+the pore pressure p of a consolidation problem with drained faces (p = 0 relative to
+p_ext at y = ±h/2) and, beam-like, no flow along x:
+
+    ∂p/∂t = M ∂/∂y (K ∂p/∂y) − 2μ ∂ε/∂t,    K = k/γ_w,  M = λ + 2μ,
+
+which follows from Darcy's law, incompressible constituents and σ_yy = 0 (so that the
+volumetric strain is (2μ/M) ε + p/M). The total axial stress σ' − (2μ/M) p gives the
+section moment M = −d ∫ σ y dy. Material: E(m) = E_s + Ē_m0 ρ_m, ν(m), k(m), φ(m)
+(MODEL.md §3, §4). The seepage velocity is v_f = −(K/φ) ∇p.
+
+**Time.** Quasi-static over one cycle from rest (p = 0), implicit Euler in time (the
+pressure is eliminated linearly, section by section), and at each step a Newton solve
+(optimistix, implicit differentiation) for the segment angles and P.
+
+Units inside this module are SI (m, Pa, N, s).
+
+A tiny stress-free imperfection (mid-span rise `imperfection` × L, a half sine) selects
+the upward buckling mode and keeps the response smooth from u = 0.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from .params import Params
+
+GAMMA_W_PA_PER_M = 1000.0 * 9.81  # ρ_f g of the culture medium (MODEL.md §4)
+
+
+def waveform(t, period_s, u_max, hold_fraction):
+    """Post displacement u_M(t) of eq. A.22: hold at rest, sinusoidal ramp up, hold at
+    full flexure, ramp down, hold; period T, amplitude u_max, hold γ = hold_fraction T."""
+    T = period_s
+    g = hold_fraction * T
+    t = jnp.mod(t, T)
+    w = 2 * jnp.pi / (T - 4 * g)
+    up = 0.5 * u_max * (1 + jnp.sin(w * (t - g) - 0.5 * jnp.pi))
+    down = 0.5 * u_max * (1 + jnp.sin(w * (t - 0.5 * T - g) + 0.5 * jnp.pi))
+    return jnp.where(
+        t < g, 0.0,
+        jnp.where(t < 0.5 * T - g, up, jnp.where(t < 0.5 * T + g, u_max, jnp.where(t < T - g, down, 0.0))),
+    )
+
+
+class BeamGrid(eqx.Module):
+    """Resolution of the beam: segments along s and implicit-Euler steps per cycle
+    (the thickness uses the growth grid's ny cells)."""
+
+    n_segments: int = eqx.field(static=True, default=50)
+    steps_per_cycle: int = eqx.field(static=True, default=200)
+
+    def __check_init__(self):
+        if not isinstance(self.n_segments, int) or self.n_segments < 4 or self.n_segments % 2:
+            raise ValueError(f"beam n_segments = {self.n_segments!r} must be an even integer >= 4")
+        if not isinstance(self.steps_per_cycle, int) or self.steps_per_cycle < 8:
+            raise ValueError(f"beam steps_per_cycle = {self.steps_per_cycle!r} must be an integer >= 8")
+
+    def node_s(self, length):
+        return jnp.linspace(0.0, length, self.n_segments + 1)
+
+
+class Material(eqx.Module):
+    """Section properties at the interior nodes × thickness cells (SI units)."""
+
+    E: jax.Array  # Young's modulus, Pa
+    nu: jax.Array
+    K: jax.Array  # k/γ_w, m²/(Pa s)
+    phi: jax.Array  # porosity
+
+    @classmethod
+    def from_ecm(cls, m, p: Params) -> "Material":
+        """E = E_s + Ē_m0 ρ_m (A.25), ν, k, φ linear in m (2.7, 2.8, 2.13)."""
+        rho_m_ug_g = p.rho_m_max_mg_g * 1e3 * m
+        E = (p.E_s_kPa + p.E_m0_kPa_per_ug_g * rho_m_ug_g) * 1e3
+        nu = p.nu_s + (p.nu_t - p.nu_s) * m
+        k = p.k_hyd_s_cm_s + (p.k_hyd_t_cm_s - p.k_hyd_s_cm_s) * m  # cm/s
+        K = k * 1e-2 / GAMMA_W_PA_PER_M
+        phi = p.phi_s + (p.phi_t - p.phi_s) * m
+        return cls(E=E, nu=nu, K=K, phi=phi)
+
+    @property
+    def mu(self):
+        return self.E / (2 * (1 + self.nu))
+
+    @property
+    def lam(self):
+        return self.E * self.nu / ((1 + self.nu) * (1 - 2 * self.nu))
+
+    @property
+    def M(self):
+        return self.lam + 2 * self.mu
+
+    @property
+    def E_plane(self):
+        return self.E / (1 - self.nu**2)
+
+
+class Geometry(eqx.Module):
+    length: jax.Array  # m
+    thickness: jax.Array  # m
+    depth: jax.Array  # m
+    pin_offset: jax.Array  # m, e of the moment arm
+
+    @classmethod
+    def from_params(cls, p: Params, pins: str = "centroid") -> "Geometry":
+        h = p.thickness_mm * 1e-3
+        offset = {"centroid": 0.0, "bottom": 0.5}[pins] * h
+        return cls(length=p.length_mm * 1e-3, thickness=h, depth=p.depth_mm * 1e-3, pin_offset=offset)
+
+    def y_cells(self, ny):
+        return (jnp.arange(ny) + 0.5) * (self.thickness / ny) - 0.5 * self.thickness
+
+
+def _consolidation_operator(mat: Material, dy, dt):
+    """Tridiagonal (sub, diag, sup) of I − dt M ∂_y(K ∂_y ·), p = 0 half a cell out."""
+    K = mat.K
+    inner = 2 * K[:, 1:] * K[:, :-1] / (K[:, 1:] + K[:, :-1])
+    lower = jnp.concatenate([2 * K[:, :1], inner], axis=1)  # face j−1/2 (surface: K_j, dy/2)
+    upper = jnp.concatenate([inner, 2 * K[:, -1:]], axis=1)  # face j+1/2
+    c = dt * mat.M / dy**2
+    sub = jnp.where(jnp.arange(K.shape[1]) == 0, 0.0, -c * lower)
+    sup = jnp.where(jnp.arange(K.shape[1]) == K.shape[1] - 1, 0.0, -c * upper)
+    return sub, 1 + c * (lower + upper), sup
+
+
+def _tridiag_solve(op, rhs):
+    sub, diag, sup = op
+    return jax.lax.linalg.tridiagonal_solve(sub, diag, sup, rhs[..., None])[..., 0]
+
+
+_GAUSS = (0.5 - 0.5 / 3**0.5, 0.5 + 0.5 / 3**0.5)
+
+
+class Beam(eqx.Module):
+    """One beam configuration: geometry, section material and resolution."""
+
+    geometry: Geometry
+    material: Material  # (n_segments − 1, ny)
+    grid: BeamGrid
+    fibre_law: str = eqx.field(static=True, default="neo-hookean")
+    imperfection: float = eqx.field(static=True, default=1e-3)
+
+    @property
+    def ds(self):
+        return self.geometry.length / self.grid.n_segments
+
+    @property
+    def ny(self):
+        return self.material.E.shape[1]
+
+    def natural_angles(self):
+        """Segment angles of the stress-free half-sine imperfection."""
+        N, L = self.grid.n_segments, self.geometry.length
+        s_mid = (jnp.arange(N) + 0.5) * L / N
+        return jnp.arctan(self.imperfection * jnp.pi * jnp.cos(jnp.pi * s_mid / L))
+
+    def curvature(self, theta):
+        return (theta[1:] - theta[:-1]) / self.ds
+
+    def elastic_moment(self, dkappa):
+        """−d ∫ σ'(ε) y dy with ε = −Δκ y, two Gauss points per cell (exact if linear)."""
+        geo, mat = self.geometry, self.material
+        dy = geo.thickness / self.ny
+        y_lo = geo.y_cells(self.ny) - 0.5 * dy
+        total = 0.0
+        for g in _GAUSS:
+            y = y_lo + g * dy
+            eps = -dkappa[:, None] * y
+            if self.fibre_law == "linear":
+                sigma = mat.E_plane * eps
+            else:
+                stretch = 1 + eps
+                sigma = mat.E_plane / 3 * (stretch - stretch**-2)
+            total = total - jnp.sum(sigma * y, axis=1) * 0.5 * dy
+        return geo.depth * total
+
+    def pore_moment_weights(self):
+        """d (2μ/M) y dy: the section moment of the pore pressure is Σ_j w_j p_j."""
+        geo, mat = self.geometry, self.material
+        return geo.depth * (2 * mat.mu / mat.M) * geo.y_cells(self.ny) * (geo.thickness / self.ny)
+
+    def euler_load(self):
+        """π² EI/L² of the drained section at mid-span, N (scales the post force)."""
+        geo, mat = self.geometry, self.material
+        mid = self.grid.n_segments // 2 - 1
+        dy = geo.thickness / self.ny
+        y = geo.y_cells(self.ny)
+        EI = geo.depth * jnp.sum(mat.E_plane[mid] * (y**2 + dy**2 / 12) * dy)
+        return jnp.pi**2 * EI / geo.length**2
+
+    def residual(self, z, args):
+        """Moment balance at the interior nodes, pins on one line, chord = c₀ − u."""
+        u, a, b = args
+        geo = self.geometry
+        theta, P = z[:-1], z[-1] * self.euler_load()
+        theta0 = self.natural_angles()
+        kappa = self.curvature(theta)
+        dkappa = kappa - self.curvature(theta0)
+        p = a + kappa[:, None] * b
+        moment = self.elastic_moment(dkappa) + jnp.sum(self.pore_moment_weights() * p, axis=1)
+        y_nodes = jnp.concatenate([jnp.zeros(1), jnp.cumsum(self.ds * jnp.sin(theta))])
+        scale = self.euler_load() * geo.length / jnp.pi**2
+        r_moment = (moment + P * (y_nodes[1:-1] + geo.pin_offset)) / scale
+        chord0 = jnp.sum(self.ds * jnp.cos(theta0))
+        r_close = jnp.sum(self.ds * jnp.sin(theta)) / geo.length
+        r_chord = (jnp.sum(self.ds * jnp.cos(theta)) - (chord0 - u)) / geo.length
+        return jnp.concatenate([r_moment, r_close[None], r_chord[None]])
+
+    def rest_state(self):
+        return jnp.concatenate([self.natural_angles(), jnp.zeros(1)])
+
+    def equilibrium(self, u, z0, a=None, b=None, rtol=1e-8, max_steps=40):
+        """Newton solve for (θ, P/P_E) at end shortening u (m); a, b: pore pressure
+        p = a + κ b (zero: drained)."""
+        if a is None:
+            a = jnp.zeros_like(self.material.E)
+            b = jnp.zeros_like(self.material.E)
+        sol = optx.root_find(
+            self.residual, optx.Newton(rtol=rtol, atol=rtol), z0, args=(u, a, b),
+            max_steps=max_steps, throw=False,
+        )
+        return sol.value, sol.result
+
+    def shape(self, z):
+        """Node coordinates (x, y) in m of the state z."""
+        theta = z[:-1]
+        zero = jnp.zeros(1)
+        x = jnp.concatenate([zero, jnp.cumsum(self.ds * jnp.cos(theta))])
+        y = jnp.concatenate([zero, jnp.cumsum(self.ds * jnp.sin(theta))])
+        return x, y
+
+
+class CycleResult(eqx.Module):
+    """One loading cycle from rest. Per step (steps + 1, first = rest): time, post
+    displacement u (m), post force (N, compression positive), mid-span deflection (m),
+    peak surface strain. (As the strip is pulled back straight while its pores still
+    drain, the inextensible beam carries a brief tension; the reported post force is
+    the peak compression.)
+    Cycle means on the sections (interior nodes × ny): signed seepage velocity
+    `mean_vy`, `mean_vx` and `mean_abs_vy` (m/s). `fields` (if kept): θ history,
+    pore pressure (Pa) and v_y (m/s) histories."""
+
+    t: jax.Array
+    u: jax.Array
+    post_force_N: jax.Array
+    midspan_deflection_m: jax.Array
+    surface_strain: jax.Array
+    mean_vy: jax.Array
+    mean_vx: jax.Array
+    mean_abs_vy: jax.Array
+    failed: jax.Array
+    fields: dict | None
+
+    @property
+    def post_force_max_N(self):
+        """Peak compressive post force over the cycle, N."""
+        return jnp.max(self.post_force_N)
+
+
+def _seepage(beam: Beam, p):
+    """Seepage velocities (v_x, v_y) at the cells of each section, m/s."""
+    geo, mat = beam.geometry, beam.material
+    dy = geo.thickness / beam.ny
+    pad = jnp.pad(p, ((0, 0), (1, 1)))  # drained faces: p = 0 half a cell out
+    grad_face = (pad[:, 1:] - pad[:, :-1]) / dy
+    grad_face = grad_face.at[:, 0].multiply(2.0).at[:, -1].multiply(2.0)
+    vy = -(mat.K / mat.phi) * 0.5 * (grad_face[:, 1:] + grad_face[:, :-1])
+    vx = -(mat.K / mat.phi) * jnp.gradient(p, beam.ds, axis=0)
+    return vx, vy
+
+
+def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: bool = False, cycles: int = 1) -> CycleResult:
+    """Solve one cycle of A.22 from rest (p = 0): implicit Euler, `steps_per_cycle`
+    steps. With `cycles > 1` the loading repeats and the last cycle is reported (its
+    means approach the periodic steady state)."""
+    n = beam.grid.steps_per_cycle
+    dt = period_s / n
+    geo, mat = beam.geometry, beam.material
+    y = geo.y_cells(beam.ny)
+    op = _consolidation_operator(mat, geo.thickness / beam.ny, dt)
+    drive = 2 * mat.mu * y  # p gains drive · Δκ
+    b = _tridiag_solve(op, drive)
+    kappa0 = beam.curvature(beam.natural_angles())
+    mid = beam.grid.n_segments // 2
+
+    def step(carry, k):
+        z, p, kappa = carry
+        u = waveform((k + 1) * dt, period_s, u_max_m, hold_fraction)
+        a = _tridiag_solve(op, p - kappa[:, None] * drive)
+        z_new, result = beam.equilibrium(u, z, a, b)
+        kappa_new = beam.curvature(z_new[:-1])
+        p_new = a + kappa_new[:, None] * b
+        vx, vy = _seepage(beam, p_new)
+        _, ys = beam.shape(z_new)
+        out = dict(
+            u=u,
+            post_force_N=z_new[-1] * beam.euler_load(),
+            midspan_deflection_m=ys[mid],
+            surface_strain=0.5 * geo.thickness * jnp.max(jnp.abs(kappa_new - kappa0)),
+            vx=vx, vy=vy, failed=result != optx.RESULTS.successful,
+        )
+        if keep_fields:
+            out["theta"], out["p"] = z_new[:-1], p_new
+        return (z_new, p_new, kappa_new), out
+
+    z0 = beam.rest_state()
+    init = (z0, jnp.zeros_like(mat.E), kappa0)
+    _, hist = jax.lax.scan(step, init, jnp.arange(n * cycles))
+    hist = jax.tree_util.tree_map(lambda h: h[-n:], hist)
+    zero = jnp.zeros(1)
+    _, y_rest = beam.shape(z0)
+    fields = None
+    if keep_fields:
+        fields = dict(theta=jnp.concatenate([z0[None, :-1], hist["theta"]]),
+                      p=jnp.concatenate([jnp.zeros_like(mat.E)[None], hist["p"]]),
+                      vy=jnp.concatenate([jnp.zeros_like(mat.E)[None], hist["vy"]]))
+    return CycleResult(
+        t=jnp.arange(n + 1) * dt,
+        u=jnp.concatenate([zero, hist["u"]]),
+        post_force_N=jnp.concatenate([zero, hist["post_force_N"]]),
+        midspan_deflection_m=jnp.concatenate([y_rest[mid][None], hist["midspan_deflection_m"]]),
+        surface_strain=jnp.concatenate([zero, hist["surface_strain"]]),
+        mean_vy=jnp.mean(hist["vy"], axis=0),
+        mean_vx=jnp.mean(hist["vx"], axis=0),
+        mean_abs_vy=jnp.mean(jnp.abs(hist["vy"]), axis=0),
+        failed=jnp.any(hist["failed"]),
+        fields=fields,
+    )

@@ -1,0 +1,68 @@
+"""The two time scales (MODEL.md §5): ECM → beam properties; one loading cycle → the
+lumped transport that the growth model sees, frozen over a growth interval.
+
+Two lumping rules, both a function of the cycle's seepage velocity v_f scaled by the
+lumping constant C:
+
+* `"dispersive"` (default): oscillatory pore flow mixes the medium, an added O2
+  dispersivity D_disp = C · h · (1/T) ∫₀ᵀ |v_f,y| dt (isotropic, cm²/s). It reproduces
+  the experimental fact that flexure enhances nutrient supply.
+* `"paper"`: the paper's literal rule (eq. 2.15), an advective velocity
+  v̂ = (C/T) ∫₀ᵀ v_f dt, signed, over one cycle from rest. Its mean over a nearly
+  periodic cycle nearly cancels, and what is left is symmetric about the mid-plane and
+  can *reduce* supply (MODEL.md §5's note; `jaxtissue reproduce` reports both).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from .beam import Beam, BeamGrid, Geometry, Material
+from .grid import Grid
+from .growth import State, Transport
+from .params import Params
+
+RULES = ("dispersive", "paper")
+
+
+def beam_nodes_x_cm(p: Params, beam_grid: BeamGrid):
+    """Reference x (cm, −L/2..L/2) of the beam's nodes."""
+    L_cm = p.length_mm / 10.0
+    return beam_grid.node_s(L_cm) - 0.5 * L_cm
+
+
+def _to_x(values_nodes, x_from, x_to):
+    """Interpolate per-thickness-cell values (n, ny) from nodes `x_from` to `x_to`."""
+    return jax.vmap(lambda col: jnp.interp(x_to, x_from, col), in_axes=1, out_axes=1)(values_nodes)
+
+
+def beam_from_ecm(y: State, p: Params, grid: Grid, beam_grid: BeamGrid, pins: str, fibre_law: str) -> Beam:
+    """The beam whose sections carry the current ECM (growth cells → interior nodes)."""
+    x_cells = grid.x_centres(p.length_mm / 10.0)
+    x_nodes = beam_nodes_x_cm(p, beam_grid)[1:-1]
+    m = y.m if grid.nx > 1 else jnp.broadcast_to(y.m, (2, grid.ny))
+    if grid.nx == 1:
+        x_cells = jnp.array([-1.0, 1.0]) * p.length_mm
+    m_sections = _to_x(m, x_cells, x_nodes)
+    return Beam(Geometry.from_params(p, pins), Material.from_ecm(m_sections, p), beam_grid, fibre_law=fibre_law)
+
+
+def lumped_transport(cycle, p: Params, grid: Grid, beam_grid: BeamGrid, rule: str, pins: str) -> Transport:
+    """The cycle's lumped transport on the growth grid (module docstring), cm/s, cm²/s."""
+    x_nodes = beam_nodes_x_cm(p, beam_grid)
+    x_cells = grid.x_centres(p.length_mm / 10.0)
+
+    def to_growth(sections):  # (n_segments − 1, ny) in m/s → (nx, ny) in cm/s
+        ends = jnp.zeros_like(sections[:1]) if pins == "centroid" else None
+        first = ends if ends is not None else sections[:1]
+        last = ends if ends is not None else sections[-1:]
+        nodes = jnp.concatenate([first, sections, last]) * 100.0
+        return _to_x(nodes, x_nodes, x_cells)
+
+    C = p.lumping_C
+    zero = jnp.zeros(grid.shape)
+    if rule == "dispersive":
+        h_cm = p.thickness_mm / 10.0
+        return Transport(vx=zero, vy=zero, dispersion=C * h_cm * to_growth(cycle.mean_abs_vy))
+    return Transport(vx=C * to_growth(cycle.mean_vx), vy=C * to_growth(cycle.mean_vy), dispersion=zero)

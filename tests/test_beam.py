@@ -1,0 +1,126 @@
+"""The poroelastic beam against closed forms and its own refinement."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import observed_orders
+
+import jaxtissue as jt
+from jaxtissue.beam import (
+    Beam, BeamGrid, Geometry, Material, _consolidation_operator, _tridiag_solve, loading_cycle, waveform,
+)
+
+P = jt.paper_parameters()
+
+
+def uniform_beam(n_segments=40, ny=16, law="linear", steps=200, scale_E=1.0, scale_k=1.0):
+    p = P.replace(E_s_kPa=174.0 * scale_E, k_hyd_s_cm_s=3.66e-6 * scale_k)
+    mat = Material.from_ecm(jnp.zeros((n_segments - 1, ny)), p)
+    return Beam(Geometry.from_params(p), mat, BeamGrid(n_segments=n_segments, steps_per_cycle=steps), fibre_law=law)
+
+
+def static_elastica(beam, u_m, increments=100):
+    """Drained equilibrium at end shortening u: continuation along a ramp that starts
+    gently, as the loading waveform does (the straight beam is a bifurcation point)."""
+    ramp = u_m * (1 - np.cos(0.5 * np.pi * np.arange(1, increments + 1) / increments))
+
+    def step(z, u):
+        z, result = beam.equilibrium(u, z)
+        return z, result._value
+
+    z, results = jax.lax.scan(step, beam.rest_state(), jnp.asarray(ramp))
+    assert int(jnp.max(results)) == 0
+    return z
+
+
+@pytest.mark.parametrize("u_mm, deflection_mm", [(2.5, 4.87), (5.0, 6.66), (10.0, 8.72)])
+def test_elastica_midspan_deflection_matches_closed_form(u_mm, deflection_mm):
+    beam = uniform_beam(n_segments=60)
+    z = static_elastica(beam, u_mm * 1e-3)
+    _, y = beam.shape(z)
+    assert float(y[30]) * 1e3 == pytest.approx(deflection_mm, rel=1e-2)
+
+
+def test_elastica_converges_at_second_order_in_s():
+    ns = [10, 20, 40]
+    defl = []
+    for n in ns:
+        beam = uniform_beam(n_segments=n, ny=4)
+        _, y = beam.shape(static_elastica(beam, 5e-3))
+        defl.append(float(y[n // 2]))
+    ref_beam = uniform_beam(n_segments=160, ny=4)
+    _, y_ref = ref_beam.shape(static_elastica(ref_beam, 5e-3))
+    errors = [abs(d - float(y_ref[80])) for d in defl]
+    orders = observed_orders([1 / n for n in ns], errors)
+    assert np.all(orders > 1.8), (errors, orders)
+
+
+def test_post_force_scales_with_EI():
+    """Doubling every modulus (and halving k, so c_v stays) doubles the post force."""
+    base = loading_cycle(uniform_beam(n_segments=20, ny=8, law="neo-hookean", steps=60), 1.0, 5e-3, 0.05)
+    stiff = loading_cycle(uniform_beam(n_segments=20, ny=8, law="neo-hookean", steps=60, scale_E=2.0, scale_k=0.5), 1.0, 5e-3, 0.05)
+    assert float(stiff.post_force_max_N) == pytest.approx(2 * float(base.post_force_max_N), rel=1e-6)
+    beam = uniform_beam(n_segments=40)
+    z = static_elastica(beam, 5e-3)
+    # the elastica's force at 5 mm shortening: P/P_Euler from the same closed form
+    assert float(z[-1]) == pytest.approx(1.0, abs=0.35)
+
+
+def terzaghi_degree(T_v, terms=200):
+    """Average degree of consolidation of a layer drained on both faces."""
+    M = (2 * np.arange(terms) + 1) * np.pi / 2
+    return 1 - np.sum(2 / M**2 * np.exp(-(M**2) * T_v))
+
+
+def test_suddenly_strained_layer_follows_terzaghi():
+    ny = 80
+    mat = Material.from_ecm(jnp.zeros((1, ny)), P)
+    h = 1e-3
+    c_v = float(mat.K[0, 0] * mat.M[0, 0])
+    t_total = 0.3 * (h / 2) ** 2 / c_v  # up to T_v = 0.3
+    errors = []
+    for n_steps in (50, 100, 200):
+        dt = t_total / n_steps
+        op = _consolidation_operator(mat, h / ny, dt)
+        p = jnp.ones((1, ny))  # the undrained response to a sudden uniform strain
+        for _ in range(n_steps):
+            p = _tridiag_solve(op, p)
+        U = 1 - float(jnp.mean(p))
+        errors.append(abs(U - terzaghi_degree(0.3)))
+    assert errors[-1] < 5e-3
+    assert np.all(observed_orders([1, 0.5, 0.25], errors) > 0.8)  # implicit Euler: first order
+
+
+def test_linear_symmetric_cycle_in_periodic_state_has_zero_mean_flow():
+    beam = uniform_beam(n_segments=20, ny=12, steps=80)
+    first = loading_cycle(beam, 1.0, 0.5e-3, 0.0)
+    periodic = loading_cycle(beam, 1.0, 0.5e-3, 0.0, cycles=6)
+    ratio_first = float(jnp.abs(first.mean_vy).max() / first.mean_abs_vy.max())
+    ratio_periodic = float(jnp.abs(periodic.mean_vy).max() / periodic.mean_abs_vy.max())
+    assert ratio_periodic < 1e-3 and ratio_first > 10 * ratio_periodic
+
+
+def test_cycle_time_stepping_converges_at_first_order():
+    values = []
+    for steps in (50, 100, 200, 400):
+        c = loading_cycle(uniform_beam(n_segments=20, ny=12, steps=steps), 1.0, 5e-3, 0.05)
+        values.append(float(c.mean_abs_vy.max()))
+    diffs = np.abs(np.diff(values))
+    order = np.log2(diffs[:-1] / diffs[1:])
+    assert np.all(order > 0.8), (values, order)
+
+
+def test_waveform_shape_and_derivatives():
+    t = jnp.linspace(0, 1, 401)
+    u = waveform(t, 1.0, 5.0, 0.05)
+    assert float(u[0]) == 0 and float(u.max()) == pytest.approx(5.0) and float(u[200]) == pytest.approx(5.0)
+    assert float(waveform(0.03, 1.0, 5.0, 0.05)) == 0.0
+    for arg, h in ((1, 1e-6), (2, 1e-6), (3, 1e-7)):
+        f = lambda *a: waveform(0.3, *a)  # noqa: E731
+        x = [1.0, 5.0, 0.05]
+        g = jax.grad(f, argnums=arg - 1)(*x)
+        up, dn = list(x), list(x)
+        up[arg - 1] += h
+        dn[arg - 1] -= h
+        assert float(g) == pytest.approx(float(f(*up) - f(*dn)) / (2 * h), rel=1e-5)
