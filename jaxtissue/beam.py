@@ -1,8 +1,10 @@
 """The large-deformation poroelastic beam and one loading cycle (MODEL.md §4).
 
-**Kinematics.** A geometrically exact, inextensible (elastica) beam along the arc
-length s ∈ [0, L], discretised into `n_segments` straight segments of angle θ_k; the
-curvature lives on the interior nodes, κ_i = (θ_i − θ_{i−1})/ds. Both posts are pins on
+**Kinematics.** A geometrically exact (elastica) beam along the arc length
+s ∈ [0, L], discretised into `n_segments` straight segments of angle θ_k; the curvature
+lives on the interior nodes, κ_i = (θ_i − θ_{i−1})/ds. The centre line stretches
+under tension by P/EA (it bounds the tension when the strip is pulled back straight
+while its pores still drain). Both posts are pins on
 one line; the moving post shortens the chord by u_M(t) (A.22).
 
 **Equilibrium.** With compressive post force P along the chord, the moment at node i is
@@ -155,7 +157,7 @@ class Beam(eqx.Module):
     material: Material  # (n_segments − 1, ny)
     grid: BeamGrid
     fibre_law: str = eqx.field(static=True, default="neo-hookean")
-    imperfection: float = eqx.field(static=True, default=1e-3)
+    imperfection: float = eqx.field(static=True, default=1e-2)
 
     @property
     def ds(self):
@@ -215,13 +217,29 @@ class Beam(eqx.Module):
         dkappa = kappa - self.curvature(theta0)
         p = a + kappa[:, None] * b
         moment = self.elastic_moment(dkappa) + jnp.sum(self.pore_moment_weights() * p, axis=1)
-        y_nodes = jnp.concatenate([jnp.zeros(1), jnp.cumsum(self.ds * jnp.sin(theta))])
+        ds = self.segment_length(P)
+        y_nodes = jnp.concatenate([jnp.zeros(1), jnp.cumsum(ds * jnp.sin(theta))])
         scale = self.euler_load() * geo.length / jnp.pi**2
         r_moment = (moment + P * (y_nodes[1:-1] + geo.pin_offset)) / scale
         chord0 = jnp.sum(self.ds * jnp.cos(theta0))
-        r_close = jnp.sum(self.ds * jnp.sin(theta)) / geo.length
-        r_chord = (jnp.sum(self.ds * jnp.cos(theta)) - (chord0 - u)) / geo.length
+        r_close = jnp.sum(ds * jnp.sin(theta)) / geo.length
+        r_chord = (jnp.sum(ds * jnp.cos(theta)) - (chord0 - u)) / geo.length
         return jnp.concatenate([r_moment, r_close[None], r_chord[None]])
+
+    def axial_stiffness(self):
+        """EA of the drained section, averaged along the strip, N."""
+        geo = self.geometry
+        return geo.depth * jnp.mean(jnp.sum(self.material.E_plane, axis=1)) * geo.thickness / self.ny
+
+    def segment_length(self, P):
+        """Segment length under the post force P (compression positive): the centre
+        line stretches under tension, P/EA, so that pulling the strip straight meets
+        its axial stiffness rather than a constraint; in compression it is
+        inextensible (else a compressed unbuckled branch competes with buckling).
+        The switch is smoothed over |P| ~ 1e-3 P_Euler."""
+        P0 = 1e-3 * self.euler_load()
+        tension = 0.5 * (jnp.sqrt(P**2 + P0**2) - P0 - P)
+        return self.ds * (1 + tension / self.axial_stiffness())
 
     def rest_state(self):
         return jnp.concatenate([self.natural_angles(), jnp.zeros(1)])
@@ -241,9 +259,10 @@ class Beam(eqx.Module):
     def shape(self, z):
         """Node coordinates (x, y) in m of the state z."""
         theta = z[:-1]
+        ds = self.segment_length(z[-1] * self.euler_load())
         zero = jnp.zeros(1)
-        x = jnp.concatenate([zero, jnp.cumsum(self.ds * jnp.cos(theta))])
-        y = jnp.concatenate([zero, jnp.cumsum(self.ds * jnp.sin(theta))])
+        x = jnp.concatenate([zero, jnp.cumsum(ds * jnp.cos(theta))])
+        y = jnp.concatenate([zero, jnp.cumsum(ds * jnp.sin(theta))])
         return x, y
 
 
@@ -251,8 +270,8 @@ class CycleResult(eqx.Module):
     """One loading cycle from rest. Per step (steps + 1, first = rest): time, post
     displacement u (m), post force (N, compression positive), mid-span deflection (m),
     peak surface strain. (As the strip is pulled back straight while its pores still
-    drain, the inextensible beam carries a brief tension; the reported post force is
-    the peak compression.)
+    drain, it carries a brief tension; the reported post force is the peak
+    compression.)
     Cycle means on the sections (interior nodes × ny): signed seepage velocity
     `mean_vy`, `mean_vx` and `mean_abs_vy` (m/s). `fields` (if kept): θ history,
     pore pressure (Pa) and v_y (m/s) histories."""

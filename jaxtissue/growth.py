@@ -117,6 +117,14 @@ class GrowthModel(eqx.Module):
         dm = ecm_synthesis_rate(o, k) * c * (1.0 - m)
         return State(o=do, c=dc, m=dm)
 
+    def for_jacobian(self) -> "GrowthModel":
+        """The model whose Jacobian the implicit solver uses: first-order upwind
+        advection, so that every coupling stays within the 5-point stencil that
+        `linsolve` probes exactly (the limiter's wider stencil would alias)."""
+        if self.transport is None or self.advection == "upwind":
+            return self
+        return GrowthModel(self.coeffs, self.grid, self.transport, advection="upwind")
+
     def cell_flux_divergence(self, o, c) -> Field:
         """−∇·J_c with J_c = −D_c ∇c + χ c (c_max − c) ∇o and J_c = 0 on every face."""
         k = self.coeffs

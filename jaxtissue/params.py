@@ -132,7 +132,7 @@ class Params(eqx.Module):
     k_hyd_s_cm_s: float = 3.66e-6
     k_hyd_t_cm_s: float = 3.66e-7
     p_ext_kPa: float = 101.325
-    lumping_C: float = 0.3264
+    lumping_C: float = 0.3371
     rho_o_ext_mol_cm3: float = 2.10e-7
     rho_c_seed_cells_cm3: float = 70.5e6
     rho_m_max_mg_g: float = 108.3

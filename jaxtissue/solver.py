@@ -5,7 +5,7 @@ diffrax solver.
 with an embedded order-2 solution for step control, L-stable and stiffly accurate, and
 — being a W-method — of full order for any approximation of the Jacobian. Each step
 builds the structured Jacobian `J̃` of `linsolve.GrowthJacobian` with a few coloured
-JVPs, factors `I/(γh) − J̃` once (tridiagonal or block-tridiagonal, never dense) and
+JVPs (of the model's `for_jacobian()` surrogate, if it has one), factors `I/(γh) − J̃` once (tridiagonal or block-tridiagonal, never dense) and
 uses it for all four stages. No nonlinear iterations: its cost per step is fixed and
 reverse-mode differentiation runs straight through it.
 
@@ -62,6 +62,13 @@ def _combine(coefs, stacked):
     return jtu.tree_map(lambda x: jnp.tensordot(coefs, x, axes=1), stacked)
 
 
+def _vector_field(term):
+    """The callable inside diffrax's wrappers of an `ODETerm`."""
+    while hasattr(term, "term"):
+        term = term.term
+    return term.vector_field
+
+
 class ROS34PW2(diffrax.AbstractAdaptiveSolver):
     """Rosenbrock-W method with a structured Jacobian (module docstring).
 
@@ -86,7 +93,13 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         h = t1 - t0
         vf = lambda y: terms.vf(t0, y, args)  # noqa: E731  (autonomous)
-        f0, jvp = jax.linearize(vf, y0)
+        model = _vector_field(terms)
+        surrogate = model.for_jacobian() if hasattr(model, "for_jacobian") else model
+        if surrogate is model:
+            f0, jvp = jax.linearize(vf, y0)
+        else:
+            f0 = vf(y0)
+            _, jvp = jax.linearize(lambda y: surrogate(t0, y, args), y0)
         shape = jtu.tree_leaves(y0)[0].shape
         # A W-method keeps its order for any J̃, so J̃ is held constant under
         # differentiation: no second derivatives, and the gradient differs from that

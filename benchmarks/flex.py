@@ -1,0 +1,152 @@
+"""The full flex run (1 Hz, 5 mm, 2.0e6 s) on the default grids: jaxtissue versus the
+same coupled scheme with SciPy for the growth solves, in one run.
+
+Reports: compile time; forward wall time split into beam cycles and growth; the
+gradient of 3-week collagen with respect to all parameters and the protocol (time and
+peak memory relative to the forward run, from XLA's memory analysis); and the SciPy
+baseline — per growth interval the same jitted beam cycle, the same lumped dispersion,
+then `solve_ivp(BDF)` with the 2-D Jacobian's sparsity pattern (a NumPy right-hand
+side written from MODEL.md, as a user would).
+
+    python benchmarks/flex.py [--quick]     (--quick: 1/10 of the culture time)
+"""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.integrate
+import scipy.sparse
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+import scipy_reference  # noqa: E402
+
+import jaxtissue as jt  # noqa: E402
+from jaxtissue.beam import BeamGrid  # noqa: E402
+from jaxtissue.coupling import lumped_transport  # noqa: E402
+from jaxtissue.simulate import flex_cycle  # noqa: E402
+
+T_END = 2.0e6
+GRID = jt.Grid(nx=50, ny=40)
+BEAM = BeamGrid()
+PROTOCOL = jt.Protocol.flex()
+
+
+class ScipyGrowth2D:
+    """The 2-D growth system with a frozen dispersivity, NumPy + solve_ivp(BDF)."""
+
+    def __init__(self, params: jt.Params, grid: jt.Grid):
+        self.p = {k: float(v) for k, v in params.as_dict().items()}
+        self.nx, self.ny = grid.nx, grid.ny
+        self.dx = self.p["length_mm"] / 10 / self.nx
+        self.dy = self.p["thickness_mm"] / 10 / self.ny
+        self.k_p = scipy_reference.derived_k_p(self.p)
+        n = self.nx * self.ny
+        # unknowns ordered (species, x, y); pattern: 5-point in o, pointwise couplings
+        lap = scipy.sparse.kronsum(
+            scipy.sparse.diags([1, 1, 1], [-1, 0, 1], shape=(self.ny, self.ny)),
+            scipy.sparse.diags([1, 1, 1], [-1, 0, 1], shape=(self.nx, self.nx)),
+        )
+        eye = scipy.sparse.identity(n)
+        self.pattern = scipy.sparse.bmat([[lap, eye, lap], [eye, eye, None], [eye, eye, eye]]).tocsc()
+
+    def rhs(self, t, u, disp):
+        p, nx, ny, dx, dy = self.p, self.nx, self.ny, self.dx, self.dy
+        o, c, m = u.reshape(3, nx, ny)
+        k, psi = p["kappa"], p["psi"]
+        D = p["D_o0"] * (9 * k * m - 6 * m * (1 - m) * (k - 1) + 2 * (1 - m) * k * psi) / (
+            9 * m + 3 * m * (1 - m) * (k - 1) + (2 + m) * k * psi
+        ) + disp
+        hm = lambda a, b: 2 * a * b / (a + b)  # noqa: E731
+        fx = np.zeros((nx + 1, ny))
+        fx[1:-1] = hm(D[1:], D[:-1]) * (o[1:] - o[:-1]) / dx
+        fy = np.empty((nx, ny + 1))
+        fy[:, 1:-1] = hm(D[:, 1:], D[:, :-1]) * (o[:, 1:] - o[:, :-1]) / dy
+        fy[:, 0] = D[:, 0] * (o[:, 0] - p["o_ext"]) / (dy / 2)
+        fy[:, -1] = D[:, -1] * (p["o_ext"] - o[:, -1]) / (dy / 2)
+        op = np.maximum(o, 0)
+        do = (fx[1:] - fx[:-1]) / dx + (fy[:, 1:] - fy[:, :-1]) / dy - p["Q_o"] * c * op / (p["o_h"] + op)
+        dc = (self.k_p * scipy_reference._g(o, p) - p["k_a"]) * c * (p["c_max"] - c)
+        dm = p["k_m0"] * np.maximum(o - p["o_m"], 0) * c * (1 - m)
+        return np.concatenate([do.ravel(), dc.ravel(), dm.ravel()])
+
+    def solve(self, u0, t0, t1, disp, rtol=1e-5):
+        sol = scipy.integrate.solve_ivp(
+            self.rhs, (t0, t1), u0, method="BDF", rtol=rtol, atol=rtol * 1e-3,
+            jac_sparsity=self.pattern, args=(disp,),
+        )
+        return sol.y[:, -1]
+
+
+def timed(fn, *args):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - t0
+
+
+def main(quick=False):
+    t_end = T_END / 10 if quick else T_END
+    params = jax.tree_util.tree_map(jnp.asarray, jt.paper_parameters())
+    protocol = jax.tree_util.tree_map(jnp.asarray, PROTOCOL)
+    n_intervals = int(np.ceil(t_end / 2.0e4))
+    print(f"flex 1 Hz / 5 mm, t_end = {t_end:g} s ({n_intervals} growth intervals), growth grid "
+          f"{GRID.nx} x {GRID.ny}, beam {BEAM.n_segments} segments x {BEAM.steps_per_cycle} steps per cycle")
+
+    forward = jax.jit(lambda p, q: jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM))
+    _, t_first = timed(forward, params, protocol)
+    result, t_fwd = timed(forward, params, protocol)
+    print(f"\nforward: {t_fwd:.1f} s after compilation (compile + first run {t_first:.1f} s, compile ~{t_first - t_fwd:.1f} s)")
+
+    cycle = jax.jit(lambda y, p, q: flex_cycle(y, p, q, GRID, BEAM)[1].post_force_max_N)
+    timed(cycle, result.final, params, protocol)
+    _, t_cycle = timed(cycle, result.final, params, protocol)
+    t_beam = t_cycle * (n_intervals + 1)
+    print(f"  beam cycles: {n_intervals + 1} x {t_cycle * 1e3:.0f} ms = {t_beam:.1f} s; growth solves: {t_fwd - t_beam:.1f} s "
+          f"({int(result.num_steps)} steps)")
+
+    def collagen(p, q):
+        r = jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM)
+        return r.collagen_mg_per_g[r.index(jt.THREE_WEEKS_S)] if t_end >= jt.THREE_WEEKS_S else r.collagen_mg_per_g[-1]
+
+    grad = jax.jit(jax.grad(collagen, argnums=(0, 1)))
+    _, t_gfirst = timed(grad, params, protocol)
+    _, t_grad = timed(grad, params, protocol)
+    mem = {}
+    for name, fn in (("forward", forward), ("gradient", grad)):
+        analysis = fn.lower(params, protocol).compile().memory_analysis()
+        mem[name] = analysis.temp_size_in_bytes + analysis.output_size_in_bytes + analysis.argument_size_in_bytes
+    print(f"gradient w.r.t. all {len(jt.paper_parameters().as_dict())} parameters and the protocol: {t_grad:.1f} s "
+          f"= {t_grad / t_fwd:.1f}x forward (goal < 5x); compile ~{t_gfirst - t_grad:.0f} s")
+    print(f"peak memory (XLA buffers): forward {mem['forward'] / 2**20:.0f} MiB, gradient {mem['gradient'] / 2**20:.0f} MiB "
+          f"= {mem['gradient'] / mem['forward']:.1f}x (goal < 3x)")
+
+    # ---- SciPy growth solves in the same staggered scheme
+    p_concrete = jt.paper_parameters()
+    growth = ScipyGrowth2D(p_concrete, GRID)
+    transport_of = jax.jit(lambda y, p, q: lumped_transport(flex_cycle(y, p, q, GRID, BEAM)[1], p, GRID, BEAM, "dispersive", "centroid").dispersion)
+    y = jt.State.initial(jt.params.nondimensionalise(p_concrete), GRID)
+    u = np.concatenate([np.asarray(y.o).ravel(), np.asarray(y.c).ravel(), np.asarray(y.m).ravel()])
+    bounds = np.minimum(np.arange(n_intervals + 1) * 2.0e4, t_end)
+    t_sp_beam = t_sp_growth = 0.0
+    for t0, t1 in zip(bounds[:-1], bounds[1:]):
+        o, c, m = (jnp.asarray(a.reshape(GRID.shape)) for a in np.split(u, 3))
+        t_a = time.perf_counter()
+        disp = np.asarray(transport_of(jt.State(o=o, c=c, m=m), params, protocol))
+        t_b = time.perf_counter()
+        u = growth.solve(u, t0, t1, disp)
+        t_sp_growth += time.perf_counter() - t_b
+        t_sp_beam += t_b - t_a
+    coll_sp = 108.3 * u[2 * GRID.nx * GRID.ny:].mean()
+    t_sp = t_sp_beam + t_sp_growth
+    print(f"\nSciPy growth solves in the same scheme: {t_sp:.1f} s (beam {t_sp_beam:.1f} s, SciPy BDF {t_sp_growth:.1f} s)")
+    print(f"final collagen: jaxtissue {float(result.collagen_mg_per_g[-1]):.5f} mg/g, SciPy scheme {coll_sp:.5f} mg/g")
+    print(f"coupled run speed-up over the SciPy scheme: {t_sp / t_fwd:.1f}x (goal >= 10x)")
+
+
+if __name__ == "__main__":
+    main(quick="--quick" in sys.argv)
