@@ -141,7 +141,7 @@ class Params(eqx.Module):
     def __check_init__(self):
         for name, info in FIELDS.items():
             value = getattr(self, name)
-            concrete = _concrete(value)
+            concrete = concrete_value(value)
             if concrete is None:
                 continue  # traced: checked where it is born, not inside jit
             bad = [v for v in np.ravel(concrete) if not (np.isfinite(v) and info.contains(float(v)))]
@@ -163,7 +163,8 @@ class Params(eqx.Module):
         return {name: float(getattr(self, name)) for name in FIELDS}
 
 
-def _concrete(value):
+def concrete_value(value):
+    """`value` as a NumPy array, or None if it is traced (then checks wait for later)."""
     if isinstance(value, jax.core.Tracer):
         return None
     try:

@@ -98,12 +98,11 @@ def ecm_maps(results: dict, path):
     fig, axes = plt.subplots(n, 1, figsize=(10, 1.6 * n + 0.6), constrained_layout=True, squeeze=False)
     vmax = max(float(np.max(np.asarray(r.final.m))) for r in results.values())
     for ax, (label, r) in zip(axes[:, 0], results.items()):
-        x_mm, y_mm = 10 * np.asarray(r.x_cm), 10 * np.asarray(r.y_cm)
         m = np.asarray(r.final.m)
-        if m.shape[0] == 1:
-            m = np.repeat(m, 2, axis=0)
-            x_mm = np.array([-12.5, 12.5])
-        im = ax.pcolormesh(x_mm, y_mm, m.T, shading="nearest", vmin=0, vmax=vmax, cmap="magma")
+        length, thickness = float(r.params.length_mm), float(r.params.thickness_mm)
+        x_edges = np.linspace(-length / 2, length / 2, m.shape[0] + 1)
+        y_edges = np.linspace(-thickness / 2, thickness / 2, m.shape[1] + 1)
+        im = ax.pcolormesh(x_edges, y_edges, m.T, shading="flat", vmin=0, vmax=vmax, cmap="magma")
         ax.set_title(f"{label}: ECM m at day {float(r.ts[-1]) / DAY_S:.1f}", fontsize=9)
         ax.set_ylabel("y (mm)")
         ax.set_aspect("auto")

@@ -14,7 +14,7 @@ import numpy as np
 from . import observables as obs
 from .grid import Grid
 from .growth import GrowthModel, State
-from .params import Params, nondimensionalise
+from .params import Params, concrete_value, nondimensionalise
 from .beam import BeamGrid, loading_cycle
 from .coupling import RULES, beam_from_ecm, lumped_transport
 from .solver import ROS34PW2
@@ -52,7 +52,7 @@ class Protocol(eqx.Module):
             ("hold_fraction", lambda v: 0 <= v < 0.25, "in [0, 0.25)"),
         )
         for name, ok, allowed in checks:
-            value = _concrete(getattr(self, name))
+            value = concrete_value(getattr(self, name))
             if value is not None and not (np.all(np.isfinite(value)) and np.all(ok(value))):
                 raise ValueError(f"protocol {name} = {np.ravel(value)[0]:g} must be {allowed}")
 
@@ -63,15 +63,6 @@ class Protocol(eqx.Module):
     @classmethod
     def flex(cls, period_s=1.0, post_displacement_mm=5.0, hold_fraction=0.05, lumping="dispersive", pins="centroid") -> "Protocol":
         return cls("flex", period_s, post_displacement_mm, hold_fraction, lumping, pins)
-
-
-def _concrete(value):
-    if isinstance(value, jax.core.Tracer):
-        return None
-    try:
-        return np.asarray(value, dtype=float)
-    except Exception:
-        return None
 
 
 class SolverOptions(eqx.Module):

@@ -13,8 +13,8 @@ COARSE = dict(grid=jt.Grid(nx=8, ny=16), beam=BeamGrid(n_segments=10, steps_per_
 P = jt.paper_parameters()
 
 
-def run(protocol, params=P, **kw):
-    return jt.simulate(params, protocol, t_end_s=jt.THREE_WEEKS_S, **{**COARSE, **kw})
+def run(protocol, params=P, t_end_s=jt.THREE_WEEKS_S):
+    return jt.simulate(params, protocol, t_end_s=t_end_s, **COARSE)
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +65,21 @@ def test_flex_adds_ecm_deep_in_the_construct_and_ends_evolve_alike(cases):
     assert abs(f[0, core] - s[0, core]) < 0.5 * abs(f[mid, core] - s[mid, core])
 
 
-def test_paper_rule_runs_and_is_reported():
-    r = run(jt.Protocol.flex(lumping="paper"), params=P.replace(lumping_C=70.0))
+def test_paper_rule_gives_a_symmetric_signed_flow(cases):
+    """The paper's literal rule runs; its lumped velocity is antisymmetric about the
+    mid-plane (flow towards or away from the middle on both sides)."""
+    import sys
+
+    from jaxtissue.coupling import lumped_transport
+
+    sim = sys.modules["jaxtissue.simulate"]
+    p = jax.tree_util.tree_map(jnp.asarray, P.replace(lumping_C=70.0))
+    protocol = jt.Protocol.flex(lumping="paper")
+    _, cycle = sim.flex_cycle(cases["static"].final, p, protocol, COARSE["grid"], COARSE["beam"])
+    v = np.asarray(lumped_transport(cycle, p, COARSE["grid"], COARSE["beam"], "paper", "centroid").vy)
+    assert np.abs(v).max() > 0
+    np.testing.assert_allclose(v, -v[:, ::-1], atol=1e-3 * np.abs(v).max())
+    r = run(protocol, params=P.replace(lumping_C=70.0), t_end_s=4.0e5)
     assert not bool(r.failed) and np.isfinite(final(r, "collagen_mg_per_g"))
 
 
