@@ -15,7 +15,7 @@ from . import observables as obs
 from .grid import Grid
 from .growth import GrowthModel, State
 from .params import Params, concrete_value, nondimensionalise
-from .beam import BeamGrid, loading_cycle
+from .beam import BeamGrid, loading_cycle, nested_checkpoint_scan
 from .coupling import RULES, beam_from_ecm, lumped_transport
 from .solver import ROS34PW2
 
@@ -73,6 +73,8 @@ class SolverOptions(eqx.Module):
     dt0_s: float = eqx.field(static=True, default=10.0)
     dtmax_s: float = eqx.field(static=True, default=2.0e5)
     max_steps: int = eqx.field(static=True, default=4096)
+    checkpoints: int = eqx.field(static=True, default=16)
+    """Checkpoints of the reverse pass through one growth solve (memory ∝ this)."""
     fixed_steps: int | None = eqx.field(static=True, default=None)
     """If set: no step control, this many steps growing geometrically from `dt0_s`
     (the same discrete map for every parameter value: for finite-difference checks)."""
@@ -82,7 +84,7 @@ class SolverOptions(eqx.Module):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive number")
-        for name in ("max_steps", "fixed_steps"):
+        for name in ("max_steps", "fixed_steps", "checkpoints"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or value < 1):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive integer")
@@ -97,7 +99,8 @@ class SolverOptions(eqx.Module):
 
 
 class Result(eqx.Module):
-    """The outputs of `simulate` (MODEL.md §3), at the save times `ts` (s).
+    """The outputs of `simulate` (MODEL.md §3), at the save times `ts` (s; static, so
+    `result.index(t)` works inside `jit` and `grad`).
 
     Series have a leading time axis; `profile_*` are mid-section profiles across the
     thickness (axis `y_cm`); `final` holds the last 2-D fields. `post_force_max_N` is the
@@ -105,7 +108,7 @@ class Result(eqx.Module):
     `failed` is True when a solve stopped early (the values are then not valid).
     """
 
-    ts: jax.Array
+    ts: tuple = eqx.field(static=True)
     dna_ug_per_g: jax.Array
     collagen_mg_per_g: jax.Array
     E_eff_kPa: jax.Array
@@ -176,6 +179,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
         saveat=saveat,
         stepsize_controller=options.controller(t0, t1),
         max_steps=options.max_steps,
+        adjoint=diffrax.RecursiveCheckpointAdjoint(checkpoints=options.checkpoints),
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
         throw=False,
     )
@@ -219,9 +223,8 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         t0s, t1s = jnp.asarray(bounds[:-1]), jnp.asarray(bounds[1:])
         tes = jnp.clip(THREE_WEEKS_S, t0s, t1s)
 
-        @jax.checkpoint
-        def interval(y, xs):
-            t0, t1, te = xs
+        def interval(y, k):
+            t0, t1, te = t0s[k], t1s[k], tes[k]
             _, cycle = flex_cycle(y, params, protocol, grid, beam_grid)
             transport = lumped_transport(cycle, params, grid, beam_grid, protocol.lumping, protocol.pins)
             model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport)
@@ -237,7 +240,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             )
             return y1, out
 
-        final, out = jax.lax.scan(interval, y0, (t0s, t1s, tes))
+        final, out = nested_checkpoint_scan(interval, y0, len(bounds) - 1)
         start = _observe(0.0, y0, args)
         series = {k: jnp.concatenate([start[k][None], v[:, 1]]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol, grid, beam_grid)
@@ -253,7 +256,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             failed = failed | cycle3.failed
         num_steps = jnp.sum(out["steps"])
     return Result(
-        ts=jnp.asarray(times),
+        ts=tuple(times),
         **series,
         final=final,
         x_cm=grid.x_centres(coeffs.length_cm),
