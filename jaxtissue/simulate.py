@@ -15,7 +15,7 @@ from . import observables as obs
 from .grid import Grid
 from .growth import GrowthModel, State
 from .params import Params, concrete_value, nondimensionalise
-from .beam import BeamGrid, loading_cycle, nested_checkpoint_scan
+from .beam import BeamGrid, loading_cycle
 from .coupling import RULES, beam_from_ecm, lumped_transport
 from .solver import ROS34PW2
 
@@ -240,7 +240,9 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             )
             return y1, out
 
-        final, out = nested_checkpoint_scan(interval, y0, len(bounds) - 1)
+        # each interval is rematerialised in the backward pass: memory holds one
+        # state per interval plus one interval's working set (beam.py nests further)
+        final, out = jax.lax.scan(jax.checkpoint(interval), y0, jnp.arange(len(bounds) - 1))
         start = _observe(0.0, y0, args)
         series = {k: jnp.concatenate([start[k][None], v[:, 1]]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol, grid, beam_grid)
@@ -308,6 +310,9 @@ def simulate(
     for name, value in (("t_end_s", t_end_s), ("coupling_interval_s", coupling_interval_s)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} = {value!r} must be a positive number of seconds")
+    u, length = concrete_value(protocol.post_displacement_mm), concrete_value(params.length_mm)
+    if protocol.regime == "flex" and u is not None and length is not None and np.any(u >= length):
+        raise ValueError(f"protocol post_displacement_mm = {np.ravel(u)[0]:g} must be below the strip length {np.ravel(length)[0]:g} mm")
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s)).tolist())
     params = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), params)
     protocol = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), protocol)

@@ -126,3 +126,47 @@ def test_params_table_lists_every_field(capsys):
     out = capsys.readouterr().out
     for name in ("k_c_max", "lumping_C", "E_m0_kPa_per_ug_g", "cm^2/s"):
         assert name in out
+
+
+def test_cycle_command(tmp_path):
+    out = tmp_path / "cycle"
+    code = main(["cycle", "--post-displacement", "5", "--period", "1", "--ecm", "0.01", "--segments", "20", "--steps", "80", "--ny", "12", "--out", str(out)])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["midspan_deflection_mm_max"] == pytest.approx(6.66, rel=0.02)
+    assert summary["post_force_max_N"] > 0 and summary["cycle_mean_velocity_cm_s_max"] > 0
+    assert (out / "shape.png").exists() and (out / "flow.png").exists()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--ecm", "2"], ["--ecm", "[0, 1]"]),
+        (["--post-displacement", "30"], ["--post-displacement", "30", "below the strip length"]),
+        (["--hold-fraction", "0.3"], ["--hold-fraction", "0.3", "[0, 0.25)"]),
+        (["--period", "0"], ["--period", "positive"]),
+    ],
+)
+def test_cycle_bad_input(tmp_path, capsys, args, words):
+    code = exit_code(["cycle", *args, "--out", str(tmp_path / "never")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    for word in words:
+        assert word in err
+    assert not (tmp_path / "never").exists()
+
+
+def test_simulate_flex_and_reproduce_commands(tmp_path):
+    """The flex regime and the main job, end to end over two growth intervals."""
+    out = tmp_path / "flex"
+    assert main(["simulate", "--regime", "flex", "--t-end", "4e4", "--grid", "6", "10", "--period", "2", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["regime"] == "flex" and summary["post_force_max_N"][-1] > 0
+    rep = tmp_path / "reproduce"
+    assert main(["reproduce", "--t-end", "4e4", "--out", str(rep)]) == 0
+    summary = json.loads((rep / "summary.json").read_text())
+    for case in ("static", "flex", "flex_0.5Hz", "flex_2Hz", "flex_2.5mm", "flex_10mm"):
+        assert set(summary[case]) >= {"dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "post_force_max_N"}
+    for name in ("report.md", "fig5_profiles_static.png", "fig7_profiles_flex.png", "fig8_ecm_maps.png", "fig9_contents.png", "fig10_rigidity_force.png"):
+        assert (rep / name).exists()
+    assert "Engelmayr" in (rep / "report.md").read_text()

@@ -66,8 +66,8 @@ def test_flex_adds_ecm_deep_in_the_construct_and_ends_evolve_alike(cases):
 
 
 def test_paper_rule_gives_a_symmetric_signed_flow(cases):
-    """The paper's literal rule runs; its lumped velocity is antisymmetric about the
-    mid-plane (flow towards or away from the middle on both sides)."""
+    """The paper's literal rule runs; its lumped velocity across the thickness is
+    symmetric about the mid-plane (MODEL.md §5's note), hence not divergence-free."""
     import sys
 
     from jaxtissue.coupling import lumped_transport
@@ -78,7 +78,8 @@ def test_paper_rule_gives_a_symmetric_signed_flow(cases):
     _, cycle = sim.flex_cycle(cases["static"].final, p, protocol, COARSE["grid"], COARSE["beam"])
     v = np.asarray(lumped_transport(cycle, p, COARSE["grid"], COARSE["beam"], "paper", "centroid").vy)
     assert np.abs(v).max() > 0
-    np.testing.assert_allclose(v, -v[:, ::-1], atol=1e-3 * np.abs(v).max())
+    np.testing.assert_allclose(v, v[:, ::-1], atol=1e-6 * np.abs(v).max())
+    assert np.abs(np.diff(v, axis=1)).max() > 0.1 * np.abs(v).max()
     r = run(protocol, params=P.replace(lumping_C=70.0), t_end_s=4.0e5)
     assert not bool(r.failed) and np.isfinite(final(r, "collagen_mg_per_g"))
 
