@@ -39,12 +39,11 @@ def _to_x(values_nodes, x_from, x_to):
 
 def beam_from_ecm(y: State, p: Params, grid: Grid, beam_grid: BeamGrid, pins: str, fibre_law: str) -> Beam:
     """The beam whose sections carry the current ECM (growth cells → interior nodes)."""
-    x_cells = grid.x_centres(p.length_mm / 10.0)
     x_nodes = beam_nodes_x_cm(p, beam_grid)[1:-1]
-    m = y.m if grid.nx > 1 else jnp.broadcast_to(y.m, (2, grid.ny))
-    if grid.nx == 1:
-        x_cells = jnp.array([-1.0, 1.0]) * p.length_mm
-    m_sections = _to_x(m, x_cells, x_nodes)
+    if grid.nx == 1:  # uniform along the strip
+        m_sections = jnp.broadcast_to(y.m, (x_nodes.shape[0], grid.ny))
+    else:
+        m_sections = _to_x(y.m, grid.x_centres(p.length_mm / 10.0), x_nodes)
     return Beam(Geometry.from_params(p, pins), Material.from_ecm(m_sections, p), beam_grid, fibre_law=fibre_law)
 
 
