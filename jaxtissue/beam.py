@@ -26,7 +26,7 @@ section moment M = −d ∫ σ y dy. Material: E(m) = E_s + Ē_m0 ρ_m, ν(m), k
 
 **Time.** Quasi-static over one cycle from rest (p = 0), implicit Euler in time (the
 pressure is eliminated linearly, section by section), and at each step a Newton solve
-(optimistix, implicit differentiation) for the segment angles and P.
+(structured Jacobian, implicit differentiation) for the segment angles and P.
 
 Units inside this module are SI (m, Pa, N, s).
 
@@ -36,10 +36,12 @@ the upward buckling mode and keeps the response smooth from u = 0.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
+from jax.ad_checkpoint import checkpoint_name
 
 from .params import Params
 
@@ -207,24 +209,58 @@ class Beam(eqx.Module):
         EI = geo.depth * jnp.sum(mat.E_plane[mid] * (y**2 + dy**2 / 12) * dy)
         return jnp.pi**2 * EI / geo.length**2
 
-    def residual(self, z, args):
-        """Moment balance at the interior nodes, pins on one line, chord = c₀ − u."""
-        u, a, b = args
+    def _scale(self):
+        """Moment scale EI_mid/L of the residual's moment rows, N m."""
+        return self.euler_load() * self.geometry.length / jnp.pi**2
+
+    def section_moment(self, kappa, a, b):
+        """Section moments at the interior nodes for curvature κ and pore pressure
+        p = a + κ b: elastic plus pore part (local in κ)."""
+        dkappa = kappa - self.curvature(self.natural_angles())
+        return self.elastic_moment(dkappa) + jnp.sum(self.pore_moment_weights() * (a + kappa[:, None] * b), axis=1)
+
+    def _geometric_residual(self, z, u):
+        """The residual's terms in the node positions: P (y_i + e) on the moment rows,
+        pins on one line, chord = c₀ − u."""
         geo = self.geometry
         theta, P = z[:-1], z[-1] * self.euler_load()
-        theta0 = self.natural_angles()
-        kappa = self.curvature(theta)
-        dkappa = kappa - self.curvature(theta0)
-        p = a + kappa[:, None] * b
-        moment = self.elastic_moment(dkappa) + jnp.sum(self.pore_moment_weights() * p, axis=1)
         ds = self.segment_length(P)
         y_nodes = jnp.concatenate([jnp.zeros(1), jnp.cumsum(ds * jnp.sin(theta))])
-        scale = self.euler_load() * geo.length / jnp.pi**2
-        r_moment = (moment + P * (y_nodes[1:-1] + geo.pin_offset)) / scale
-        chord0 = jnp.sum(self.ds * jnp.cos(theta0))
+        r_moment = P * (y_nodes[1:-1] + geo.pin_offset) / self._scale()
+        chord0 = jnp.sum(self.ds * jnp.cos(self.natural_angles()))
         r_close = jnp.sum(ds * jnp.sin(theta)) / geo.length
         r_chord = (jnp.sum(ds * jnp.cos(theta)) - (chord0 - u)) / geo.length
         return jnp.concatenate([r_moment, r_close[None], r_chord[None]])
+
+    def residual(self, z, args):
+        """Moment balance at the interior nodes, pins on one line, chord = c₀ − u
+        (unknowns z = (θ, P/P_E); args = (u, a, b))."""
+        u, a, b = args
+        moment = self.section_moment(self.curvature(z[:-1]), a, b) / self._scale()
+        return self._geometric_residual(z, u) + jnp.pad(moment, (0, 2))
+
+    def jacobian(self, z, args):
+        """∂residual/∂z in closed form. A section's moment depends on its own κ only,
+        so its tangent stiffness is one JVP (a diagonal), times κ = Dθ; the post force's
+        moment P y_i has ∂/∂θ_k = P ds cos θ_k for k < i (lower triangular)."""
+        u, a, b = args
+        geo = self.geometry
+        n = z.shape[0] - 1
+        theta, P_E = z[:-1], self.euler_load()
+        P, S, L = z[-1] * P_E, self._scale(), geo.length
+        kappa = self.curvature(theta)
+        _, stiffness = jax.jvp(lambda k: self.section_moment(k, a, b), (kappa,), (jnp.ones_like(kappa),))
+        ds, dds_dP = jax.value_and_grad(self.segment_length)(P)
+        sin, cos = jnp.sin(theta), jnp.cos(theta)
+        y_inner = jnp.cumsum(ds * sin)[:-1]  # y at the interior nodes
+        eye = jnp.eye(n - 1, n)
+        D = (jnp.roll(eye, 1, axis=1) - eye) / self.ds  # ∂κ/∂θ
+        lower = jnp.tril(jnp.ones((n - 1, n)))  # node i sees segments k < i
+        moment_theta = (stiffness[:, None] * D + P * ds * lower * cos) / S
+        moment_P = P_E * (y_inner + geo.pin_offset + P * y_inner * dds_dP / ds) / S
+        close = jnp.concatenate([ds * cos, P_E * dds_dP * jnp.sum(sin)[None]]) / L
+        chord = jnp.concatenate([-ds * sin, P_E * dds_dP * jnp.sum(cos)[None]]) / L
+        return jnp.concatenate([jnp.concatenate([moment_theta, moment_P[:, None]], axis=1), close[None], chord[None]])
 
     def axial_stiffness(self):
         """EA of the drained section, averaged along the strip, N."""
@@ -244,17 +280,36 @@ class Beam(eqx.Module):
     def rest_state(self):
         return jnp.concatenate([self.natural_angles(), jnp.zeros(1)])
 
-    def equilibrium(self, u, z0, a=None, b=None, rtol=1e-8, max_steps=40):
-        """Newton solve for (θ, P/P_E) at end shortening u (m); a, b: pore pressure
-        p = a + κ b (zero: drained)."""
+    def equilibrium(self, u, z0, a=None, b=None, tol=1e-10, max_steps=20):
+        """(θ, P/P_E) at end shortening u (m), from the guess z0; a, b: pore pressure
+        p = a + κ b (zero: drained). Returns (z, converged).
+
+        Newton's method with the structured Jacobian (`jacobian`), iterated without
+        tracing derivatives until the step is below `tol`, then one more Newton step
+        with that Jacobian held fixed: its value is the converged root, its derivative
+        the implicit-function theorem's, −J⁻¹ ∂r/∂(args, beam)."""
         if a is None:
             a = jnp.zeros_like(self.material.E)
             b = jnp.zeros_like(self.material.E)
-        sol = optx.root_find(
-            self.residual, optx.Newton(rtol=rtol, atol=rtol), z0, args=(u, a, b),
-            max_steps=max_steps, throw=False,
-        )
-        return sol.value, sol.result
+        args = (u, a, b)
+        frozen, frozen_args = jax.lax.stop_gradient((self, args))
+
+        def body(carry):
+            k, z, _, _ = carry
+            J = frozen.jacobian(z, frozen_args)
+            dz = jnp.linalg.solve(J, frozen.residual(z, frozen_args))
+            return k + 1, z - dz, jnp.max(jnp.abs(dz)), J
+
+        def cond(carry):
+            k, _, step, _ = carry
+            return (k < max_steps) & (step > tol)
+
+        z1 = jax.lax.stop_gradient(z0)
+        init = (0, z1, jnp.inf, jnp.eye(z1.shape[0], dtype=z1.dtype))
+        _, z, step, J = jax.lax.while_loop(cond, body, init)
+        z, step, J = checkpoint_name((z, step, J), "beam_newton")  # kept, not re-solved, by remat
+        z = z - jnp.linalg.solve(J, self.residual(z, args))
+        return z, step <= tol
 
     def shape(self, z):
         """Node coordinates (x, y) in m of the state z."""
@@ -307,14 +362,17 @@ def _seepage(beam: Beam, p):
 
 def nested_checkpoint_scan(step, init, length):
     """`lax.scan(step, init, arange(length))` as √length chunks of √length steps, each
-    level rematerialised: a gradient stores O(√length) carries instead of every step's
-    Newton intermediates."""
+    chunk rematerialised: a gradient stores √length carries and one chunk's
+    intermediates at a time, and the rematerialisation keeps the converged Newton
+    iterates (named "beam_newton") rather than solving again."""
     inner = max(d for d in range(1, int(length**0.5) + 1) if length % d == 0)
     outer = length // inner
 
-    @jax.checkpoint
+    keep = jax.checkpoint_policies.save_only_these_names("beam_newton")
+
+    @functools.partial(jax.checkpoint, policy=keep)
     def chunk(carry, i):
-        return jax.lax.scan(jax.checkpoint(step), carry, i * inner + jnp.arange(inner))
+        return jax.lax.scan(step, carry, i * inner + jnp.arange(inner))
 
     carry, hist = jax.lax.scan(chunk, init, jnp.arange(outer))
     return carry, jax.tree_util.tree_map(lambda h: h.reshape((length,) + h.shape[2:]), hist)
@@ -340,7 +398,7 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
         z, p, kappa, sums = carry
         u = waveform((k + 1) * dt, period_s, u_max_m, hold_fraction)
         a = _tridiag_solve(op, p - kappa[:, None] * drive)
-        z_new, result = beam.equilibrium(u, z, a, b)
+        z_new, converged = beam.equilibrium(u, z, a, b)
         kappa_new = beam.curvature(z_new[:-1])
         p_new = a + kappa_new[:, None] * b
         vx, vy = _seepage(beam, p_new)
@@ -352,7 +410,7 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
             post_force_N=z_new[-1] * beam.euler_load(),
             midspan_deflection_m=ys[mid],
             surface_strain=0.5 * geo.thickness * jnp.max(jnp.abs(kappa_new - kappa0)),
-            failed=result != optx.RESULTS.successful,
+            failed=~converged,
         )
         if keep_fields:
             out["theta"], out["p"], out["vy"] = z_new[:-1], p_new, vy

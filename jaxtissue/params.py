@@ -177,8 +177,11 @@ def suggest(name: str, choices) -> str:
     """'did you mean …' text for an unknown name."""
     import difflib
 
-    close = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.5)
-    return f"did you mean {close[0]!r}?" if close else "see `jaxtissue params` for the valid names"
+    choices = list(choices)
+    close = difflib.get_close_matches(name, choices, n=1, cutoff=0.5)
+    if close:
+        return f"did you mean {close[0]!r}?"
+    return f"allowed: {', '.join(choices)}" if len(choices) <= 8 else "see `jaxtissue params` for the valid names"
 
 
 def paper_parameters(**changes) -> Params:

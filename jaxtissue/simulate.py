@@ -78,6 +78,9 @@ class SolverOptions(eqx.Module):
     fixed_steps: int | None = eqx.field(static=True, default=None)
     """If set: no step control, this many steps growing geometrically from `dt0_s`
     (the same discrete map for every parameter value: for finite-difference checks)."""
+    autodiff: str = eqx.field(static=True, default="reverse")
+    """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
+    Jacobians of a few parameters in least-squares fits)."""
 
     def __check_init__(self):
         for name in ("rtol", "atol", "dt0_s", "dtmax_s"):
@@ -88,6 +91,13 @@ class SolverOptions(eqx.Module):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or value < 1):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive integer")
+        if self.autodiff not in ("reverse", "forward"):
+            raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
+
+    def adjoint(self):
+        if self.autodiff == "forward":
+            return diffrax.ForwardMode()
+        return diffrax.RecursiveCheckpointAdjoint(checkpoints=self.checkpoints)
 
     def controller(self, t0, t1):
         """diffrax step-size controller over [t0, t1]."""
@@ -179,7 +189,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
         saveat=saveat,
         stepsize_controller=options.controller(t0, t1),
         max_steps=options.max_steps,
-        adjoint=diffrax.RecursiveCheckpointAdjoint(checkpoints=options.checkpoints),
+        adjoint=options.adjoint(),
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
         throw=False,
     )
