@@ -16,4 +16,6 @@ from .simulate import (  # noqa: E402
     simulate as simulate,
 )
 
+from . import calibration as calibration  # noqa: E402
+
 __version__ = "0.1.0"

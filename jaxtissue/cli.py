@@ -87,6 +87,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     r.set_defaults(func=cmd_reproduce)
+
+    k = sub.add_parser("calibrate", help="fit parameters to measurements (multi-start LM, standard errors, profiles)")
+    k.add_argument("problem", metavar="PROBLEM.toml", help="problem file, e.g. calibrate/engelmayr2005.toml")
+    k.add_argument("--starts", type=_grid_size, default=None, metavar="N", help="number of starts (default: the problem's [fit] starts)")
+    k.add_argument("--no-profiles", action="store_true", help="skip the profile likelihoods (identifiability then from standard errors)")
+    k.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
+    k.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    k.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
+    k.set_defaults(func=cmd_calibrate)
     return parser
 
 
@@ -225,6 +234,24 @@ def cmd_reproduce(args) -> int:
     with io.output_folder(args.out, args.overwrite) as tmp:
         reproduce.write(results, params, tmp)
     print(f"wrote {args.out}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from . import calibration, io
+
+    overrides = {} if args.starts is None else {"starts": args.starts}
+    problem = calibration.read_problem(args.problem, overrides)
+    io.check_output_folder(args.out, args.overwrite)
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    cal = calibration.calibrate(problem, with_profiles=not args.no_profiles, progress=progress)
+    if not math.isfinite(cal.fit.chi2):
+        print("jaxtissue: error: every start failed (non-finite residuals); try narrower bounds or more starts. Nothing was written.", file=sys.stderr)
+        return 1
+    with io.output_folder(args.out, args.overwrite) as tmp:
+        calibration.write(cal, tmp)
+    print(f"chi2 = {cal.fit.chi2:.4g}; " + ", ".join(f"{n} = {v:.4g}" for n, v in zip(problem.names, cal.fit.values)))
+    print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png)")
     return 0
 
 

@@ -153,3 +153,66 @@ def cycle_figures(cycle, beam, shape_path, flow_path):
     fig.suptitle("Seepage velocity across the mid-section over one cycle from rest")
     fig.savefig(flow_path, dpi=120)
     plt.close(fig)
+
+
+def waterfall(chi2, path):
+    """Final χ² of every start, sorted (a flat first step = a reproducible optimum)."""
+    c = np.sort(np.asarray(chi2))
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.plot(np.arange(1, len(c) + 1), c, "o-", ms=4)
+    ax.set(xlabel="start (sorted)", ylabel="final χ²", yscale="log", title="multi-start waterfall")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def fit_against_data(observations, model, path):
+    """Data (mean ± SD) and the fitted model, one panel per observable."""
+    names = list(dict.fromkeys(o.quantity for o in observations))
+    fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        rows = [(k, o) for k, o in enumerate(observations) if o.quantity == name]
+        labels = [f"{o.regime}\n{o.time_s / DAY_S:.0f} d" for _, o in rows]
+        x = np.arange(len(rows))
+        ax.errorbar(x, [o.mean for _, o in rows], yerr=[o.sd for _, o in rows], fmt="o", color="k", capsize=3, label="data")
+        ax.plot(x, [model[k] for k, _ in rows], "s", color="C3", label="model")
+        ax.set_xticks(x, labels)
+        ax.set_title(name)
+    axes[0][0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def correlation(names, corr, path):
+    """Parameter correlations of the Laplace approximation."""
+    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 2, 1.0 * len(names) + 1.5))
+    im = ax.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(len(names)), names, rotation=45, ha="right")
+    ax.set_yticks(range(len(names)), names)
+    for i in range(len(names)):
+        for j in range(len(names)):
+            ax.text(j, i, f"{corr[i, j]:.2f}", ha="center", va="center", fontsize=8)
+    fig.colorbar(im, ax=ax, label="correlation")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def likelihood_profiles(profiles, chi2_min, threshold, best, path):
+    """Profile likelihood of each free parameter with the 95 % threshold."""
+    n = len(profiles)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
+    for ax, pr in zip(axes.flat, profiles):
+        ax.plot(pr.values, pr.chi2, "o-", ms=3)
+        ax.axhline(chi2_min + threshold, color="grey", ls="--", lw=1, label="95 % threshold")
+        ax.axvline(best[pr.name], color="C3", lw=1, label="optimum")
+        ax.set(xlabel=pr.name, ylabel="profile χ²", title=("" if pr.identifiable else "not identifiable: ") + pr.name)
+    for ax in axes.flat[n:]:
+        ax.axis("off")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

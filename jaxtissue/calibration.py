@@ -1,0 +1,621 @@
+"""Calibration: fit parameters to measurements by SD-weighted least squares.
+
+A `Problem` (from a TOML file, `read_problem`) names the free parameters (bounds, log or
+linear transform), the fixed ones, the measurements (`data.read_measurements`) and the
+protocol of each condition. Its residuals r_i = (model_i − mean_i)/sd_i are a jit-able,
+differentiable function of the free parameters; χ² = Σ r_i² is −2 log L + const of a
+Gaussian likelihood.
+
+Coordinates: t = log θ or θ (the transform); the optimiser moves u ∈ ℝ with
+t = t_lo + (t_hi − t_lo) σ(u), so every iterate respects the bounds.
+
+* `fit`: Levenberg–Marquardt (optimistix, forward-mode Jacobian) from a Latin-hypercube
+  design of starts inside the bounds (plus the base values), batched with `vmap`.
+* `fisher`: the Laplace approximation at the optimum from the exact Jacobian:
+  covariance (JᵀJ)⁻¹ in t, standard errors, correlations.
+* `profiles`: profile likelihoods, re-optimising the other parameters at each point;
+  a parameter is identifiable when its profile rises by χ²₁,₀.₉₅ = 3.84 on both sides
+  within its bounds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import tomllib
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .beam import BeamGrid
+from .data import DataError, Observation, read_measurements
+from .grid import Grid
+from .io import InputError
+from .params import FIELDS, Params, suggest
+from .simulate import Protocol, SolverOptions, save_times, simulate
+
+CHI2_95 = 3.841458820694124
+"""95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
+
+
+class FreeParameter(NamedTuple):
+    name: str
+    lower: float
+    upper: float
+    transform: str  # "log" or "linear"
+
+    def to_t(self, value):
+        return jnp.log(value) if self.transform == "log" else jnp.asarray(value, float)
+
+    def from_t(self, t):
+        return jnp.exp(t) if self.transform == "log" else t
+
+    @property
+    def t_bounds(self):
+        f = math.log if self.transform == "log" else float
+        return f(self.lower), f(self.upper)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSettings:
+    """Resolution and tolerances of the model inside the fit."""
+
+    ny: int = 16
+    flex_nx: int = 6
+    beam_segments: int = 16
+    beam_steps_per_cycle: int = 80
+    coupling_interval_s: float = 1.8144e5  # 3 weeks / 10: 3-week values within 0.05 % of T_g = 2e4 s
+    rtol: float = 1e-6
+    atol: float = 1e-9
+
+    def grid(self, regime: str) -> Grid:
+        return Grid(nx=1 if regime == "static" else self.flex_nx, ny=self.ny)
+
+    def beam(self) -> BeamGrid:
+        return BeamGrid(n_segments=self.beam_segments, steps_per_cycle=self.beam_steps_per_cycle)
+
+    def options(self) -> SolverOptions:
+        return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff="forward")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    """Multi-start Levenberg–Marquardt and profile settings."""
+
+    starts: int = 8
+    seed: int = 0
+    batch: int = 1  # starts per vmapped batch
+    max_steps: int = 60
+    rtol: float = 1e-5  # LM stops when steps in u and changes of r are below 1e-5
+    profile_points: int = 4  # per side
+    profile_max_steps: int = 30
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    base: Params
+    free: tuple[FreeParameter, ...]
+    observations: tuple[Observation, ...]
+    conditions: dict  # name -> Protocol
+    model: ModelSettings = ModelSettings()
+    fit: FitSettings = FitSettings()
+    name: str = "calibration"
+
+    def __post_init__(self):
+        self._plan()  # validates the observation times
+
+    # ---- coordinates
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.free)
+
+    def t_bounds(self):
+        lo, hi = zip(*(f.t_bounds for f in self.free))
+        return jnp.asarray(lo), jnp.asarray(hi)
+
+    def t_from_values(self, values) -> jax.Array:
+        return jnp.stack([f.to_t(v) for f, v in zip(self.free, values)])
+
+    def values_from_t(self, t) -> jax.Array:
+        return jnp.stack([f.from_t(t[i]) for i, f in enumerate(self.free)])
+
+    def t_from_u(self, u):
+        lo, hi = self.t_bounds()
+        return lo + (hi - lo) * jax.nn.sigmoid(u)
+
+    def u_from_t(self, t):
+        lo, hi = self.t_bounds()
+        x = jnp.clip((t - lo) / (hi - lo), 1e-9, 1 - 1e-9)
+        return jnp.log(x) - jnp.log1p(-x)
+
+    def params(self, t) -> Params:
+        """The full parameter set at transformed free values t."""
+        return self.base.replace(**dict(zip(self.names, self.values_from_t(t))))
+
+    # ---- the model
+    def _plan(self):
+        """(condition, t_end) of each simulation, checking that every observation
+        time is one of its save times."""
+        plan = []
+        for name, protocol in self.conditions.items():
+            times = [o.time_s for o in self.observations if o.regime in (name, "seeded")]
+            t_end = max(times + [0.0])
+            if t_end <= 0:
+                continue
+            saved = save_times(t_end, self.model.coupling_interval_s)
+            for o in self.observations:
+                if o.regime == name and np.min(np.abs(saved - o.time_s)) > 1e-6 * max(1.0, o.time_s):
+                    raise InputError(
+                        f"observation {o.quantity} ({name}) at time {o.time_s:g} s: not a save time; "
+                        f"use 0, multiples of coupling_interval_s = {self.model.coupling_interval_s:g} s, or 3 weeks"
+                    )
+            plan.append((name, t_end))
+        if not plan:
+            raise InputError("no observation at a time > 0 in any condition of the problem")
+        return plan
+
+    def simulate(self, params: Params) -> dict:
+        """`{condition: Result}` up to each condition's last observation."""
+        m = self.model
+        return {
+            name: simulate(params, self.conditions[name], t_end, m.grid(self.conditions[name].regime),
+                           coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options())
+            for name, t_end in self._plan()
+        }
+
+    def model_values(self, t) -> jax.Array:
+        """The model's value for each observation (`observations` order)."""
+        results = self.simulate(self.params(t))
+        first = next(iter(results.values()))
+        out = []
+        for o in self.observations:
+            r = first if o.regime == "seeded" else results[o.regime]
+            out.append(getattr(r, o.quantity)[r.index(o.time_s)])
+        return jnp.stack(out)
+
+    def data(self):
+        return (np.array([o.mean for o in self.observations]), np.array([o.sd for o in self.observations]))
+
+    def residuals(self, t) -> jax.Array:
+        """(model − mean)/sd at transformed free values t."""
+        mean, sd = self.data()
+        return (self.model_values(t) - mean) / sd
+
+    def failed(self, t) -> jax.Array:
+        return jnp.any(jnp.stack([r.failed for r in self.simulate(self.params(t)).values()]))
+
+
+# ---------------------------------------------------------------------------------------
+# Fitting
+# ---------------------------------------------------------------------------------------
+
+
+def latin_hypercube(problem: Problem, n: int, seed: int) -> np.ndarray:
+    """n starts in t: the base values (clipped into the bounds) and n − 1 points of a
+    Latin hypercube over the transformed bounds."""
+    lo, hi = (np.asarray(b) for b in problem.t_bounds())
+    base = np.asarray(problem.t_from_values([getattr(problem.base, f) for f in problem.names]))
+    rng = np.random.default_rng(seed)
+    k = max(n - 1, 0)
+    strata = (rng.permuted(np.tile(np.arange(k), (len(lo), 1)), axis=1).T + rng.random((k, len(lo)))) / max(k, 1)
+    starts = np.concatenate([np.clip(base, lo, hi)[None], lo + (hi - lo) * strata])
+    return starts[:n]
+
+
+class FitResult(NamedTuple):
+    t: np.ndarray  # best, transformed
+    values: np.ndarray  # best, natural units
+    chi2: float
+    starts_t: np.ndarray  # (starts, k)
+    ends_t: np.ndarray
+    chi2_all: np.ndarray  # per start, final χ²
+    steps_all: np.ndarray  # LM steps per start
+    converged_all: np.ndarray
+    model_evaluations: int  # residual + Jacobian evaluations, all starts
+
+
+def _lm(problem: Problem, max_steps: int, pinned: bool):
+    """A jitted LM solve from u0 (optionally with free parameter `i` pinned at t_i)."""
+    solver = optx.LevenbergMarquardt(rtol=problem.fit.rtol, atol=problem.fit.rtol)  # Cauchy termination
+
+    def residual(u, args):
+        t = problem.t_from_u(u)
+        if pinned:
+            i, t_i = args
+            t = t.at[i].set(t_i)
+        return problem.residuals(t)
+
+    def solve(u0, args):
+        sol = optx.least_squares(residual, solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
+        r = residual(sol.value, args)
+        return sol.value, jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+    return solve
+
+
+def fit(problem: Problem, progress=None) -> FitResult:
+    """Multi-start Levenberg–Marquardt; `progress(n)` is called after each batch."""
+    s = problem.fit
+    starts = latin_hypercube(problem, s.starts, s.seed)
+    solve = jax.jit(jax.vmap(_lm(problem, s.max_steps, pinned=False), in_axes=(0, None)))
+    ends, chi2, steps, ok = [], [], [], []
+    for b in range(0, len(starts), s.batch):
+        u0 = problem.u_from_t(jnp.asarray(starts[b : b + s.batch]))
+        pad = s.batch - u0.shape[0]  # keep one compiled batch shape
+        u, c, n, conv = solve(jnp.concatenate([u0, jnp.repeat(u0[-1:], pad, axis=0)]), None)
+        keep = slice(0, u0.shape[0])
+        ends.append(np.asarray(problem.t_from_u(u[keep])))
+        chi2.append(np.asarray(c[keep]))
+        steps.append(np.asarray(n[keep]))
+        ok.append(np.asarray(conv[keep]))
+        if progress is not None:
+            progress(u0.shape[0])
+    ends, chi2, steps, ok = (np.concatenate(a) for a in (ends, chi2, steps, ok))
+    chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
+    best = int(np.argmin(chi2))
+    return FitResult(
+        t=ends[best], values=np.asarray(problem.values_from_t(jnp.asarray(ends[best]))), chi2=float(chi2[best]),
+        starts_t=starts, ends_t=ends, chi2_all=chi2, steps_all=steps, converged_all=ok,
+        model_evaluations=int(np.sum(steps) + len(starts)),
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# Uncertainty and identifiability
+# ---------------------------------------------------------------------------------------
+
+
+class Fisher(NamedTuple):
+    jacobian: np.ndarray  # ∂r/∂t, (observations, free)
+    covariance_t: np.ndarray
+    standard_errors: np.ndarray  # natural units (delta method)
+    standard_errors_t: np.ndarray
+    correlation: np.ndarray
+
+
+def fisher(problem: Problem, t) -> Fisher:
+    """Laplace approximation at t: Σ_t = (JᵀJ)⁺ with the exact J = ∂r/∂t."""
+    J = np.asarray(jax.jit(jax.jacfwd(problem.residuals))(jnp.asarray(t)))
+    cov = np.linalg.pinv(J.T @ J)
+    se_t = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    values = np.asarray(problem.values_from_t(jnp.asarray(t)))
+    se = np.array([v * s if f.transform == "log" else s for f, v, s in zip(problem.free, values, se_t)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se_t, se_t)
+    return Fisher(J, cov, se, se_t, corr)
+
+
+class Profile(NamedTuple):
+    name: str
+    values: np.ndarray  # natural units, ascending, including the optimum
+    chi2: np.ndarray
+    identifiable: bool
+    interval: tuple  # 95 % profile-likelihood interval (None where unbounded)
+
+
+def _crossing(xs, ys, level):
+    """First x where the piecewise-linear y(x) reaches `level`, walking from xs[0]."""
+    for k in range(1, len(xs)):
+        if ys[k] >= level > ys[k - 1]:
+            return xs[k - 1] + (level - ys[k - 1]) * (xs[k] - xs[k - 1]) / (ys[k] - ys[k - 1])
+    return None
+
+
+def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Profile]:
+    """Profile likelihood of every free parameter: on each side of the optimum,
+    `profile_points` values spaced to span 4 standard errors (or up to the bound), the
+    others re-optimised from the previous point."""
+    s = problem.fit
+    lo, hi = (np.asarray(b) for b in problem.t_bounds())
+    solve = jax.jit(_lm(problem, s.profile_max_steps, pinned=True))
+    u_best = problem.u_from_t(jnp.asarray(best.t))
+    level = best.chi2 + CHI2_95
+    out = []
+    for i, f in enumerate(problem.free):
+        sides = {}
+        for direction, bound in ((-1, lo[i]), (1, hi[i])):
+            span = abs(bound - best.t[i])
+            if np.isfinite(se_t[i]) and se_t[i] > 0:
+                span = min(span, 4 * se_t[i])
+            xs, ys, u = [best.t[i]], [best.chi2], u_best
+            for k in range(1, s.profile_points + 1):
+                x = best.t[i] + direction * span * k / s.profile_points
+                u, c, _, _ = solve(u, (i, jnp.asarray(x)))
+                xs.append(x)
+                ys.append(float(c) if np.isfinite(float(c)) else np.inf)
+                if progress is not None:
+                    progress(1)
+                if ys[-1] > level + 2 * CHI2_95:
+                    break
+            sides[direction] = (np.array(xs), np.array(ys))
+        crossing = {d: _crossing(*sides[d], level) for d in sides}
+        xs = np.concatenate([sides[-1][0][::-1], sides[1][0][1:]])
+        ys = np.concatenate([sides[-1][1][::-1], sides[1][1][1:]])
+        values = np.asarray(jax.vmap(f.from_t)(jnp.asarray(xs)))
+        interval = tuple(None if crossing[d] is None else float(f.from_t(crossing[d])) for d in (-1, 1))
+        out.append(Profile(f.name, values, ys, all(c is not None for c in crossing.values()), interval))
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Problem files
+# ---------------------------------------------------------------------------------------
+
+_TOP = {"name", "measurements", "parameters", "conditions", "model", "fit"}
+_PROTOCOL = {"regime", "period_s", "post_displacement_mm", "hold_fraction", "lumping", "pins"}
+
+
+def _table(doc, key, where, allowed=None):
+    value = doc.get(key, {})
+    if not isinstance(value, dict):
+        raise InputError(f"{where}: [{key}] must be a table")
+    if allowed is not None:
+        for k in value:
+            if k not in allowed:
+                raise InputError(f"{where}: unknown key {k!r} in [{key}]; {suggest(k, sorted(allowed))}")
+    return value
+
+
+def _settings(cls, table, where, section):
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for k, v in table.items():
+        if k not in fields:
+            raise InputError(f"{where}: unknown key {k!r} in [{section}]; {suggest(k, fields)}")
+        default = fields[k].default
+        if isinstance(default, int) and not isinstance(default, bool):
+            ok = isinstance(v, int) and not isinstance(v, bool) and v >= (0 if k == "seed" else 1)
+            need = "an integer >= 0" if k == "seed" else "a positive integer"
+        else:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            need = "a positive number"
+        if not ok:
+            raise InputError(f"{where}: [{section}] {k} = {v!r} must be {need}")
+        kwargs[k] = type(default)(v)
+    settings = cls(**kwargs)
+    if cls is ModelSettings and (settings.ny < 3 or settings.beam_segments < 4 or settings.beam_segments % 2 or settings.beam_steps_per_cycle < 8):
+        raise InputError(f"{where}: [model] needs ny >= 3, beam_segments even and >= 4, beam_steps_per_cycle >= 8")
+    return settings
+
+
+def read_problem(path, overrides: dict | None = None) -> Problem:
+    """A `Problem` from a TOML file (see `calibrate/engelmayr2005.toml`); every mistake
+    is an `InputError` naming the file and the key. `overrides` replace [fit] keys."""
+    path = pathlib.Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such problem file") from None
+    except (IsADirectoryError, UnicodeDecodeError):
+        raise InputError(f"{path}: not a TOML problem file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"{path}: not valid TOML ({err})") from None
+    where = str(path)
+    for k in doc:
+        if k not in _TOP:
+            raise InputError(f"{where}: unknown key {k!r}; {suggest(k, sorted(_TOP))}")
+    if "measurements" not in doc or not isinstance(doc["measurements"], str):
+        raise InputError(f"{where}: measurements = \"FILE.csv\" (relative to the problem file) is required")
+    try:
+        observations = read_measurements(path.parent / doc["measurements"])
+    except DataError as err:
+        raise InputError(str(err)) from None
+
+    parameters = _table(doc, "parameters", where, {"free", "fixed"})
+    fixed = _table(parameters, "fixed", where)
+    changes = {}
+    for name, value in fixed.items():
+        if name not in FIELDS:
+            raise InputError(f"{where}: unknown parameter {name!r} in [parameters.fixed]; {suggest(name, FIELDS)}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: [parameters.fixed] {name} = {value!r} must be a number ({FIELDS[name].unit})")
+        changes[name] = float(value)
+    try:
+        base = Params().replace(**changes)
+    except ValueError as err:
+        raise InputError(f"{where}: [parameters.fixed] {err}") from None
+
+    free = []
+    for name, spec in _table(parameters, "free", where).items():
+        key = f"[parameters.free] {name}"
+        if name not in FIELDS:
+            raise InputError(f"{where}: unknown parameter {name!r} in [parameters.free]; {suggest(name, FIELDS)}")
+        if name in changes:
+            raise InputError(f"{where}: {name} is both free and fixed")
+        if not isinstance(spec, dict) or "bounds" not in spec:
+            raise InputError(f"{where}: {key} must be {{ bounds = [low, high], transform = \"log\" | \"linear\" }}")
+        for k in spec:
+            if k not in ("bounds", "transform", "start"):
+                raise InputError(f"{where}: unknown key {k!r} in {key}; {suggest(k, ['bounds', 'transform', 'start'])}")
+        bounds = spec["bounds"]
+        if not (isinstance(bounds, list) and len(bounds) == 2 and all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)):
+            raise InputError(f"{where}: {key} bounds = {bounds!r} must be [low, high]")
+        low, high = map(float, bounds)
+        info = FIELDS[name]
+        if not (low < high and info.contains(low) and info.contains(high)):
+            raise InputError(f"{where}: {key} bounds = [{low:g}, {high:g}] must have low < high, both in {info.range_text()} {info.unit}")
+        transform = spec.get("transform", "log")
+        if transform not in ("log", "linear"):
+            raise InputError(f"{where}: {key} transform = {transform!r}; allowed: 'log', 'linear'")
+        if transform == "log" and low <= 0:
+            raise InputError(f"{where}: {key} a log transform needs low > 0, got {low:g}")
+        if "start" in spec:
+            start = spec["start"]
+            if isinstance(start, bool) or not isinstance(start, (int, float)) or not low <= start <= high:
+                raise InputError(f"{where}: {key} start = {start!r} must be a number in [{low:g}, {high:g}]")
+            base = base.replace(**{name: float(start)})
+        free.append(FreeParameter(name, low, high, transform))
+    if not free:
+        raise InputError(f"{where}: [parameters.free] names no parameter to fit")
+
+    conditions = {}
+    for name, spec in _table(doc, "conditions", where).items():
+        if not isinstance(spec, dict):
+            raise InputError(f"{where}: [conditions.{name}] must be a table")
+        for k in spec:
+            if k not in _PROTOCOL:
+                raise InputError(f"{where}: unknown key {k!r} in [conditions.{name}]; {suggest(k, sorted(_PROTOCOL))}")
+        try:
+            conditions[name] = Protocol(**spec)
+        except (TypeError, ValueError) as err:
+            raise InputError(f"{where}: [conditions.{name}] {err}") from None
+    if not conditions:
+        raise InputError(f"{where}: [conditions] defines no condition (e.g. [conditions.static] regime = \"static\")")
+    for o in observations:
+        if o.regime != "seeded" and o.regime not in conditions:
+            raise InputError(f"{where}: measurement condition {o.regime!r} has no [conditions.{o.regime}]; {suggest(o.regime, conditions)}")
+
+    fit_table = dict(_table(doc, "fit", where))
+    fit_table.update(overrides or {})
+    problem = Problem(
+        base=base, free=tuple(free), observations=observations, conditions=conditions,
+        model=_settings(ModelSettings, _table(doc, "model", where), where, "model"),
+        fit=_settings(FitSettings, fit_table, where, "fit"),
+        name=str(doc.get("name", path.stem)),
+    )
+    return problem
+
+
+# ---------------------------------------------------------------------------------------
+# The whole study: fit, uncertainty, profiles, files
+# ---------------------------------------------------------------------------------------
+
+
+class Calibration(NamedTuple):
+    problem: Problem
+    fit: FitResult
+    fisher: Fisher
+    profiles: list  # of Profile ([] if skipped)
+    model: np.ndarray  # model values at the optimum, `problem.observations` order
+    jacobian_check: float  # max |J − J_FD| / max |J| at the optimum (central differences)
+    seconds: dict  # "fit", "uncertainty", "profiles"
+
+
+def jacobian_fd_error(problem: Problem, t, J, h=1e-3) -> float:
+    """Max deviation of the exact Jacobian from central differences (step h in t),
+    relative to the largest entry."""
+    res = jax.jit(problem.residuals)
+    cols = []
+    for i in range(len(t)):
+        e = np.zeros(len(t))
+        e[i] = h
+        cols.append((np.asarray(res(jnp.asarray(t + e))) - np.asarray(res(jnp.asarray(t - e)))) / (2 * h))
+    fd = np.stack(cols, axis=1)
+    return float(np.max(np.abs(fd - J)) / np.max(np.abs(J)))
+
+
+def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = False) -> Calibration:
+    """Fit (multi-start LM), Laplace approximation, profile likelihoods."""
+    import time
+
+    from tqdm.auto import tqdm
+
+    seconds = {}
+    t0 = time.perf_counter()
+    with tqdm(total=problem.fit.starts, desc="fit: starts", unit="start", disable=not progress) as bar:
+        best = fit(problem, progress=bar.update)
+    seconds["fit"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fi = fisher(problem, best.t)
+    model = np.asarray(jax.jit(problem.model_values)(jnp.asarray(best.t)))
+    check = jacobian_fd_error(problem, best.t, fi.jacobian)
+    seconds["uncertainty"] = time.perf_counter() - t0
+    profs = []
+    if with_profiles:
+        t0 = time.perf_counter()
+        with tqdm(total=2 * problem.fit.profile_points * len(problem.free), desc="profiles", unit="point", disable=not progress) as bar:
+            profs = profiles(problem, best, fi.standard_errors_t, progress=bar.update)
+        seconds["profiles"] = time.perf_counter() - t0
+    return Calibration(problem, best, fi, profs, model, check, seconds)
+
+
+def summary(cal: Calibration) -> dict:
+    """The `summary.json` of `jaxtissue calibrate`."""
+    p, f = cal.problem, cal.fit
+    identifiable = {pr.name: pr.identifiable for pr in cal.profiles} if cal.profiles else {
+        n: bool(np.isfinite(se) and se_t < 1.0) for n, se, se_t in zip(p.names, cal.fisher.standard_errors, cal.fisher.standard_errors_t)
+    }
+    return {
+        "problem": p.name,
+        "parameters": dict(zip(p.names, f.values.tolist())),
+        "standard_errors": dict(zip(p.names, cal.fisher.standard_errors.tolist())),
+        "profile_intervals_95": {pr.name: list(pr.interval) for pr in cal.profiles},
+        "identifiable": identifiable,
+        "chi2": f.chi2,
+        "observations": [
+            {"name": o.quantity, "regime": o.regime, "time_s": o.time_s, "data_mean": o.mean, "data_sd": o.sd, "model": float(m)}
+            for o, m in zip(p.observations, cal.model)
+        ],
+        "correlation": {n: dict(zip(p.names, row.tolist())) for n, row in zip(p.names, cal.fisher.correlation)},
+        "starts": {"chi2": f.chi2_all.tolist(), "lm_steps": f.steps_all.tolist(), "converged": f.converged_all.tolist()},
+        "model_evaluations": f.model_evaluations,
+        "jacobian_vs_central_differences": cal.jacobian_check,
+        "seconds": cal.seconds,
+    }
+
+
+def report(cal: Calibration) -> str:
+    """A Markdown report: fitted values, uncertainty, fit against data, diagnosis."""
+    s = summary(cal)
+    p = cal.problem
+    lines = [f"# Calibration: {p.name}", ""]
+    n_good = int(np.sum(cal.fit.chi2_all <= cal.fit.chi2 + 1e-3 * max(1.0, cal.fit.chi2)))
+    lines += [
+        f"Best χ² = {cal.fit.chi2:.4g} over {len(p.observations)} observations and {len(p.free)} free parameters; "
+        f"{n_good} of {len(cal.fit.chi2_all)} starts reached it (waterfall.png). "
+        f"{cal.fit.model_evaluations} model evaluations (residuals + Jacobian) in {cal.seconds['fit']:.0f} s. "
+        f"The exact Jacobian agrees with central differences to {cal.jacobian_check:.1e} (relative to its largest entry).",
+        "",
+        "## Parameters",
+        "",
+        "| parameter | fitted | standard error | 95 % profile interval | identifiable |",
+        "|---|---|---|---|---|",
+    ]
+    for name in p.names:
+        lo, hi = s["profile_intervals_95"].get(name, [None, None])
+        interval = "—" if name not in s["profile_intervals_95"] else f"[{'bound' if lo is None else f'{lo:.4g}'}, {'bound' if hi is None else f'{hi:.4g}'}]"
+        lines.append(f"| {name} ({FIELDS[name].unit}) | {s['parameters'][name]:.4g} | {s['standard_errors'][name]:.2g} | {interval} | {'yes' if s['identifiable'][name] else '**no**'} |")
+    lines += ["", "## Model against data", "", "| observable | condition | time (s) | data | model | (model − data)/SD |", "|---|---|---|---|---|---|"]
+    off = []
+    for o in s["observations"]:
+        z = (o["model"] - o["data_mean"]) / o["data_sd"]
+        lines.append(f"| {o['name']} | {o['regime']} | {o['time_s']:g} | {o['data_mean']:g} ± {o['data_sd']:g} | {o['model']:.4g} | {z:+.2f} |")
+        if abs(z) > 1:
+            off.append(f"{o['name']} ({o['regime']}, {z:+.2f} SD)")
+    lines += [""]
+    if off:
+        lines.append("Outside 1 SD at the best fit: " + ", ".join(off) + ". No start found a lower χ², and along each "
+                     "parameter's profile (profiles.png) χ² never drops below the optimum's, so within the bounds the "
+                     "free parameters cannot bring them closer without moving other observations further away.")
+    else:
+        lines.append("Every model value lies within 1 SD of its data point.")
+    weak = [n for n in p.names if not s["identifiable"][n]]
+    strong = [(a, b, cal.fisher.correlation[i, j]) for i, a in enumerate(p.names) for j, b in enumerate(p.names) if j > i and abs(cal.fisher.correlation[i, j]) > 0.95]
+    lines += ["", "## Identifiability", ""]
+    if weak:
+        lines.append("Not identifiable from these data (the profile stays below χ²_min + 3.84 up to a bound): " + ", ".join(weak) + ".")
+    else:
+        lines.append("Every free parameter is identifiable: its profile rises above χ²_min + 3.84 on both sides.")
+    if strong:
+        lines.append("Strongly correlated pairs (|ρ| > 0.95, Laplace approximation): " + ", ".join(f"{a}–{b} ({r:+.3f})" for a, b, r in strong) + ".")
+    lines += ["", "Files: summary.json, fitted.toml (`jaxtissue simulate --params fitted.toml`), waterfall.png, fit.png, profiles.png, correlation.png.", ""]
+    return "\n".join(lines)
+
+
+def write(cal: Calibration, folder) -> None:
+    """summary.json, fitted.toml, report.md and the figures into `folder`."""
+    from . import io, plots
+
+    folder = pathlib.Path(folder)
+    io.write_json(folder / "summary.json", summary(cal))
+    io.write_params_toml(cal.problem.params(jnp.asarray(cal.fit.t)), folder / "fitted.toml")
+    io.atomic_write_text(folder / "report.md", report(cal))
+    plots.waterfall(cal.fit.chi2_all, folder / "waterfall.png")
+    plots.fit_against_data(cal.problem.observations, cal.model, folder / "fit.png")
+    plots.correlation(cal.problem.names, cal.fisher.correlation, folder / "correlation.png")
+    if cal.profiles:
+        plots.likelihood_profiles(cal.profiles, cal.fit.chi2, CHI2_95, dict(zip(cal.problem.names, cal.fit.values)), folder / "profiles.png")

@@ -1,0 +1,209 @@
+"""Calibration: measurement tables, problem files, synthetic recovery, Jacobians, CLI."""
+
+import dataclasses
+import json
+import pathlib
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtissue as jt
+from jaxtissue import calibration as cal
+from jaxtissue.cli import main
+from jaxtissue.data import ENGELMAYR, DataError, read_measurements
+from jaxtissue.io import InputError, read_params_toml
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+WEEK = 604800.0
+HEADER = "observableId,simulationConditionId,time,measurement,noiseParameters,unit,source\n"
+
+TRUTH = dict(lumping_C=0.3, k_c_max=1.3e-5, k_a=0.9e-5, k_m0=2.0e-7, E_m0_kPa_per_ug_g=1.2)
+BOUNDS = dict(lumping_C=(0.05, 2.0), k_c_max=(0.6e-5, 2.5e-5), k_a=(0.3e-5, 2.0e-5), k_m0=(5e-8, 1e-6), E_m0_kPa_per_ug_g=(0.2, 5.0))
+STARTS = dict(lumping_C=0.4, k_c_max=1.15e-5, k_a=1.05e-5, k_m0=1.7e-7, E_m0_kPa_per_ug_g=1.0)  # 10-30 % off
+
+MODEL = """
+[model]
+ny = 8
+flex_nx = 2
+beam_segments = 8
+beam_steps_per_cycle = 24
+coupling_interval_s = 604800.0
+rtol = 1e-8
+atol = 1e-11
+"""
+
+
+def problem_toml(folder, csv_name, free, regimes=("static", "flex"), fit="starts = 1\nmax_steps = 40\nprofile_points = 2"):
+    lines = [f'measurements = "{csv_name}"', "[parameters.free]"]
+    for name in free:
+        lo, hi = BOUNDS[name]
+        lines.append(f'{name} = {{ bounds = [{lo!r}, {hi!r}], transform = "log", start = {STARTS[name]!r} }}')
+    for regime in regimes:
+        lines.append(f'[conditions.{regime}]\nregime = "{regime}"')
+    path = folder / "problem.toml"
+    path.write_text("\n".join(lines) + "\n" + MODEL + "[fit]\n" + fit + "\n")
+    return path
+
+
+def synthetic(folder, free, regimes=("static", "flex"), noise=0.0, seed=0):
+    """Measurements of DNA, collagen and E at 1, 2, 3 weeks from the model at TRUTH."""
+    (folder / "m.csv").write_text(HEADER + "".join(
+        f"{q},{r},{w * WEEK},1.0,1.0,{u},\n" for q, u in (("dna_ug_per_g", "ug/g"), ("collagen_mg_per_g", "mg/g"), ("E_eff_kPa", "kPa"))
+        for r in regimes for w in (1, 2, 3)))
+    problem = cal.read_problem(problem_toml(folder, "m.csv", free, regimes))
+    truth_t = problem.t_from_values([TRUTH[n] for n in problem.names])
+    values = np.asarray(problem.model_values(truth_t))
+    sd = 0.02 * np.abs(values)
+    noisy = values + noise * sd * np.random.default_rng(seed).standard_normal(values.shape)
+    obs = tuple(o._replace(mean=float(v), sd=float(s)) for o, v, s in zip(problem.observations, noisy, sd))
+    return dataclasses.replace(problem, observations=obs), truth_t
+
+
+# ---- measurement tables
+
+
+def test_engelmayr_table_matches_the_model_spec():
+    rows = read_measurements(ROOT / "calibrate" / "data" / "engelmayr2005.csv")
+    assert [r[:6] for r in rows] == [o[:6] for o in ENGELMAYR]
+
+
+@pytest.mark.parametrize("row, message", [
+    ("collagen_mg_per_gg,static,0,1,1,mg/g,", "row 2: unknown observableId 'collagen_mg_per_gg'; did you mean 'collagen_mg_per_g'?"),
+    ("dna_ug_per_g,static,0,300,-5,ug/g,", "row 2: noiseParameters (SD) = -5 must be > 0"),
+    ("dna_ug_per_g,static,soon,300,5,ug/g,", "row 2: time = 'soon' is not a number"),
+    ("dna_ug_per_g,static,0,300,5,mg/g,", "row 2: unit 'mg/g' of dna_ug_per_g must be 'ug/g'"),
+])
+def test_bad_measurement_rows_name_the_row(tmp_path, row, message):
+    path = tmp_path / "m.csv"
+    path.write_text(HEADER + row + "\n")
+    with pytest.raises(DataError) as err:
+        read_measurements(path)
+    assert str(err.value) == f"{path}, {message}"
+
+
+def test_missing_column_is_named(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("observableId,simulationConditionId,time,measurement\ndna_ug_per_g,static,0,300\n")
+    with pytest.raises(DataError, match="missing column 'noiseParameters'"):
+        read_measurements(path)
+
+
+# ---- problem files
+
+
+def test_engelmayr_problem_reads():
+    problem = cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml")
+    assert {"lumping_C", "k_c_max", "k_a", "k_m0", "E_m0_kPa_per_ug_g"} <= set(problem.names)
+    assert set(problem.conditions) == {"static", "flex"}
+    assert len(problem.observations) == 8
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("transform = \"log\", start = 0.4", "transfrom = \"log\""), "unknown key 'transfrom' in [parameters.free] lumping_C; did you mean 'transform'?"),
+    (("[0.05, 2.0]", "[2.0, 0.05]"), "[parameters.free] lumping_C bounds = [2, 0.05] must have low < high"),
+    (("lumping_C =", "lumping_K ="), "unknown parameter 'lumping_K' in [parameters.free]; did you mean 'lumping_C'?"),
+    (('regime = "flex"', 'regime = "flexx"'), "[conditions.flex] regime = 'flexx'; allowed: 'static', 'flex'"),
+    (("starts = 1", "starts = 0"), "[fit] starts = 0 must be a positive integer"),
+])
+def test_bad_problem_files_give_one_clear_line(tmp_path, edit, message):
+    (tmp_path / "m.csv").write_text(HEADER + "dna_ug_per_g,flex,1814400,300,5,ug/g,\n")
+    path = problem_toml(tmp_path, "m.csv", ["lumping_C"])
+    path.write_text(path.read_text().replace(*edit))
+    with pytest.raises(InputError) as err:
+        cal.read_problem(path)
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_observation_between_save_times_is_refused(tmp_path):
+    (tmp_path / "m.csv").write_text(HEADER + "dna_ug_per_g,static,100000,300,5,ug/g,\ndna_ug_per_g,static,1814400,300,5,ug/g,\n")
+    with pytest.raises(InputError, match="at time 100000 s: not a save time"):
+        cal.read_problem(problem_toml(tmp_path, "m.csv", ["k_a"], regimes=("static",)))
+
+
+# ---- fitting
+
+
+@pytest.fixture(scope="module")
+def recovered(tmp_path_factory):
+    problem, truth_t = synthetic(tmp_path_factory.mktemp("synthetic"), list(TRUTH))
+    return problem, truth_t, cal.fit(problem)
+
+
+def test_noise_free_synthetic_data_recover_every_parameter_within_1_percent(recovered):
+    problem, truth_t, best = recovered
+    truth = np.asarray(problem.values_from_t(truth_t))
+    start = np.asarray([STARTS[n] for n in problem.names])
+    assert np.all(np.abs(start / truth - 1) > 0.09)  # the start really is perturbed
+    np.testing.assert_allclose(best.values, truth, rtol=1e-2)
+    assert best.chi2 < 1e-6
+
+
+def test_fit_jacobian_matches_central_differences_at_the_optimum(recovered):
+    problem, _, best = recovered
+    J = cal.fisher(problem, best.t).jacobian
+    assert cal.jacobian_fd_error(problem, best.t, J, h=1e-4) < 1e-4
+
+
+def test_noisy_synthetic_data_recover_within_three_standard_errors(tmp_path):
+    free = ["k_c_max", "k_a", "k_m0", "E_m0_kPa_per_ug_g"]
+    problem, truth_t = synthetic(tmp_path, free, regimes=("static",), noise=1.0, seed=3)
+    best = cal.fit(problem)
+    fi = cal.fisher(problem, best.t)
+    z = (best.t - np.asarray(truth_t)) / fi.standard_errors_t
+    assert np.all(np.abs(z) < 3), z
+    assert best.chi2 < 3 * len(problem.observations)  # a sensible fit: χ² ~ n − k
+
+
+def test_profiles_flag_a_parameter_the_data_cannot_see(tmp_path):
+    """lumping_C only acts in flexed culture: with static data only its profile is flat."""
+    free = ["lumping_C", "k_m0"]
+    problem, _ = synthetic(tmp_path, free, regimes=("static",))
+    best = cal.fit(problem)
+    fi = cal.fisher(problem, best.t)
+    prof = {p.name: p for p in cal.profiles(problem, best, fi.standard_errors_t)}
+    assert not prof["lumping_C"].identifiable
+    assert np.ptp(prof["lumping_C"].chi2) < 1e-6
+    assert prof["k_m0"].identifiable
+    lo, hi = prof["k_m0"].interval
+    assert lo < TRUTH["k_m0"] < hi
+
+
+# ---- the command
+
+
+def test_calibrate_command_writes_its_files(tmp_path, capsys):
+    problem, _ = synthetic(tmp_path, ["k_m0", "E_m0_kPa_per_ug_g"], regimes=("static",), noise=1.0)
+    rows = [f"{o.quantity},{o.regime},{o.time_s},{o.mean!r},{o.sd!r},{o.unit},\n" for o in problem.observations]
+    (tmp_path / "m.csv").write_text(HEADER + "".join(rows))
+    out = tmp_path / "fit"
+    assert main(["calibrate", str(tmp_path / "problem.toml"), "--starts", "2", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["parameters"]) == {"k_m0", "E_m0_kPa_per_ug_g"}
+    for key in ("standard_errors", "chi2", "identifiable", "observations"):
+        assert key in summary
+    assert {"name", "regime", "time_s", "data_mean", "data_sd", "model"} == set(summary["observations"][0])
+    fitted = read_params_toml(out / "fitted.toml")
+    assert fitted.k_m0 == pytest.approx(summary["parameters"]["k_m0"])
+    assert {"report.md", "waterfall.png", "fit.png", "profiles.png", "correlation.png"} <= {p.name for p in out.iterdir()}
+    assert main(["calibrate", str(tmp_path / "problem.toml"), "--out", str(out)]) == 2  # never overwrites
+    assert "folder exists and is not empty" in capsys.readouterr().err
+
+
+def test_calibrate_command_bad_file_exits_2(tmp_path, capsys):
+    assert main(["calibrate", str(tmp_path / "none.toml"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no such problem file" in err
+
+
+def test_result_values_in_fitted_file_reproduce_the_model(recovered, tmp_path):
+    problem, _, best = recovered
+    from jaxtissue.io import write_params_toml
+
+    write_params_toml(problem.params(jnp.asarray(best.t)), tmp_path / "p.toml")
+    params = read_params_toml(tmp_path / "p.toml")
+    static = jt.simulate(params, jt.Protocol.static(), 3 * WEEK, problem.model.grid("static"),
+                         coupling_interval_s=problem.model.coupling_interval_s, options=problem.model.options())
+    i = [k for k, o in enumerate(problem.observations) if o.quantity == "collagen_mg_per_g" and o.regime == "static"][-1]
+    assert float(static.collagen_mg_per_g[-1]) == pytest.approx(float(problem.model_values(jnp.asarray(best.t))[i]), rel=1e-9)
