@@ -16,6 +16,8 @@ import math
 import os
 import sys
 
+import numpy as np
+
 from .io import InputError
 
 DEFAULT_GRID = (1, 40)
@@ -96,6 +98,25 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     k.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     k.set_defaults(func=cmd_calibrate)
+
+    w = sub.add_parser("sweep", help="a batch of simulations over a grid or design of parameter sets")
+    w.add_argument("sweep", metavar="SWEEP.toml", help="sweep definition (see README)")
+    w.add_argument("--out", required=True, metavar="DIR", help="output folder: chunks/, sweep.nc, summary.json")
+    w.add_argument("--resume", action="store_true", help="continue an interrupted sweep in DIR, skipping finished chunks")
+    w.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty DIR")
+    w.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
+    w.set_defaults(func=cmd_sweep)
+
+    n = sub.add_parser("sensitivity", help="normalised sensitivities d ln(output)/d ln(parameter) at 3 weeks")
+    n.add_argument("--regime", choices=["static", "flex"], default="static", help="culture regime (default: static)")
+    n.add_argument("--t-end", type=_positive_float, default=1.8144e6, metavar="S", help="time of the outputs in s (default 3 weeks)")
+    n.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid (default 1 40 static, 50 40 flex)")
+    _flex_arguments(n)
+    n.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
+    n.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
+    n.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
+    n.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    n.set_defaults(func=cmd_sensitivity)
     return parser
 
 
@@ -252,6 +273,57 @@ def cmd_calibrate(args) -> int:
         calibration.write(cal, tmp)
     print(f"chi2 = {cal.fit.chi2:.4g}; " + ", ".join(f"{n} = {v:.4g}" for n, v in zip(problem.names, cal.fit.values)))
     print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png)")
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    import pathlib
+
+    from . import io, sweep
+
+    definition = sweep.read_sweep(args.sweep)
+    out = pathlib.Path(args.out)
+    if args.resume and args.overwrite:
+        raise InputError("--resume and --overwrite exclude each other")
+    if args.resume:
+        if not (out / "chunks" / "sweep.json").exists():
+            raise InputError(f"--resume {out}: no interrupted sweep there (chunks/sweep.json missing)")
+    else:
+        io.check_output_folder(out, args.overwrite)
+        if out.exists():
+            import shutil
+
+            shutil.rmtree(out)
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    ds = sweep.run(definition, out, resume=args.resume, progress=progress)
+    failures = int(ds.attrs["failures"])
+    io.write_json(out / "summary.json", {
+        "size": definition.size, "failures": failures, "names": list(definition.names), "regime": definition.protocol.regime,
+        "t_end_s": definition.t_end_s, "failed_points": definition.points[np.asarray(ds["failed"]).ravel()].tolist(),
+    })
+    print(f"{definition.size} parameter sets, {failures} failed; wrote {out}/sweep.nc and summary.json")
+    return 0
+
+
+def cmd_sensitivity(args) -> int:
+    from . import io, plots, sweep
+    from .grid import Grid
+    from .simulate import Protocol
+
+    params = load_params(args)
+    protocol = _flex_protocol(args) if args.regime == "flex" else Protocol.static()
+    io.check_output_folder(args.out, args.overwrite)
+    grid = None if args.grid is None else Grid(*args.grid)
+    table = sweep.sensitivities(params, protocol, args.t_end, grid=grid)
+    names = list(next(iter(table.values())))
+    print(f"d ln(output)/d ln(parameter) at t = {args.t_end:g} s, {args.regime} culture")
+    print(f"{'parameter':22s}" + "".join(f"{k:>20s}" for k in table))
+    for n in names:
+        print(f"{n:22s}" + "".join(f"{table[k][n]:20.4g}" for k in table))
+    with io.output_folder(args.out, args.overwrite) as tmp:
+        io.write_json(tmp / "sensitivity.json", {"regime": args.regime, "t_end_s": args.t_end, "sensitivities": table})
+        plots.sensitivities(table, tmp / "sensitivity.png", title=f"{args.regime} culture, t = {args.t_end:g} s")
+    print(f"wrote {args.out}/ (sensitivity.json, sensitivity.png)")
     return 0
 
 

@@ -216,3 +216,22 @@ def likelihood_profiles(profiles, chi2_min, threshold, best, path):
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def sensitivities(table, path, title=""):
+    """Normalised sensitivities d ln(output)/d ln(parameter), one panel per output;
+    parameters with |S| < 1e-3 everywhere are left out."""
+    names = [n for n in next(iter(table.values())) if max(abs(t[n]) for t in table.values()) >= 1e-3]
+    fig, axes = plt.subplots(1, len(table), figsize=(3.2 * len(table) + 1.5, 0.28 * len(names) + 1.5), sharey=True, squeeze=False)
+    y = np.arange(len(names))
+    for ax, (key, row) in zip(axes[0], table.items()):
+        ax.barh(y, [row[n] for n in names], color=["C3" if row[n] < 0 else "C0" for n in names])
+        ax.axvline(0, color="k", lw=0.8)
+        ax.set_title(key, fontsize=9)
+        ax.set_xlabel("d ln(output) / d ln(parameter)", fontsize=8)
+    axes[0][0].set_yticks(y, names, fontsize=8)
+    axes[0][0].invert_yaxis()
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

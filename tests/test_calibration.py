@@ -177,6 +177,8 @@ def test_calibrate_command_writes_its_files(tmp_path, capsys):
     problem, _ = synthetic(tmp_path, ["k_m0", "E_m0_kPa_per_ug_g"], regimes=("static",), noise=1.0)
     rows = [f"{o.quantity},{o.regime},{o.time_s},{o.mean!r},{o.sd!r},{o.unit},\n" for o in problem.observations]
     (tmp_path / "m.csv").write_text(HEADER + "".join(rows))
+    toml = tmp_path / "problem.toml"
+    toml.write_text(toml.read_text().replace("starts = 1", "starts = 1\nbatch = 2"))  # both starts in one vmapped batch
     out = tmp_path / "fit"
     assert main(["calibrate", str(tmp_path / "problem.toml"), "--starts", "2", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
@@ -187,6 +189,7 @@ def test_calibrate_command_writes_its_files(tmp_path, capsys):
     fitted = read_params_toml(out / "fitted.toml")
     assert fitted.k_m0 == pytest.approx(summary["parameters"]["k_m0"])
     assert {"report.md", "waterfall.png", "fit.png", "profiles.png", "correlation.png"} <= {p.name for p in out.iterdir()}
+    assert len(summary["starts"]["chi2"]) == 2 and min(summary["starts"]["chi2"]) == pytest.approx(summary["chi2"])
     assert main(["calibrate", str(tmp_path / "problem.toml"), "--out", str(out)]) == 2  # never overwrites
     assert "folder exists and is not empty" in capsys.readouterr().err
 

@@ -1,0 +1,400 @@
+"""Batch sweeps over parameters and protocol fields, and local sensitivities.
+
+A `Sweep` (from TOML, `read_sweep`) is a design of parameter sets: a full grid
+(`linspace`, `logspace`, `values` per name) or a space-filling design (`design = "lhs"`
+or `"sobol"`, `samples = N`, a `range` and `transform` per name). `run` evaluates it in
+chunks: one jitted, `vmap`ped simulation per chunk, its batch axis sharded over every
+device of `jax.devices()` (`jax.sharding`; on several hosts after
+`jax.distributed.initialize()`, the same call spans them all). Each finished chunk is
+written atomically to `DIR/chunks/`; `resume=True` skips those already there, so an
+interrupted sweep resumes and ends with the same `DIR/sweep.nc`.
+
+`sensitivities` gives d ln(output)/d ln(parameter) of the 3-week outputs for every
+parameter, one reverse-mode pass per output.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import pathlib
+import tomllib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .beam import BeamGrid
+from .grid import Grid
+from .io import InputError, atomic_write_text, write_netcdf
+from .params import FIELDS, Params, suggest
+from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, simulate
+
+OUTPUTS = {
+    "dna_ug_per_g": "ug/g",
+    "collagen_mg_per_g": "mg/g",
+    "E_eff_kPa": "kPa",
+    "EI_N_m2": "N m^2",
+    "post_force_max_N": "N",
+}
+PROTOCOL_FIELDS = {"period_s": "s", "post_displacement_mm": "mm", "hold_fraction": "1"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweep:
+    names: tuple  # swept parameter / protocol field names
+    points: np.ndarray  # (N, k) parameter sets, in store order
+    axes: dict | None  # grid: {name: values} (points are their product, C order); else None
+    protocol: Protocol
+    base: Params = Params()
+    t_end_s: float = THREE_WEEKS_S
+    outputs: str = "final"  # "final": values at t_end_s; "series": every save time
+    chunk: int = 64
+    grid: Grid | None = None
+    beam: BeamGrid = BeamGrid()
+    coupling_interval_s: float = 2.0e4
+    rtol: float = 1e-5
+    max_steps: int = 4096  # per growth solve; a set that needs more is marked failed
+    source: str = ""  # the sweep file's text (a resumed sweep must match it)
+
+    def __post_init__(self):
+        if self.grid is None:
+            object.__setattr__(self, "grid", Grid(1, 40) if self.protocol.regime == "static" else Grid(50, 40))
+
+    @property
+    def size(self) -> int:
+        return self.points.shape[0]
+
+    def model(self, values):
+        """(Params, Protocol) of one parameter set (traced values allowed)."""
+        params = {n: values[i] for i, n in enumerate(self.names) if n in FIELDS}
+        protocol = self.protocol
+        for i, n in enumerate(self.names):
+            if n in PROTOCOL_FIELDS:
+                protocol = eqx.tree_at(lambda q, n=n: getattr(q, n), protocol, values[i])
+        return self.base.replace(**params), protocol
+
+    def run_one(self, values) -> dict:
+        params, protocol = self.model(values)
+        r = simulate(params, protocol, self.t_end_s, self.grid, coupling_interval_s=self.coupling_interval_s,
+                     beam=self.beam, options=SolverOptions(rtol=self.rtol, atol=self.rtol * 1e-3, max_steps=self.max_steps))
+        pick = (lambda v: v[-1]) if self.outputs == "final" else (lambda v: v)
+        out = {k: pick(getattr(r, k)) for k in OUTPUTS}
+        out["failed"] = r.failed
+        return out
+
+    def times(self) -> np.ndarray:
+        from .simulate import save_times
+
+        return save_times(self.t_end_s, self.coupling_interval_s)
+
+
+# ---------------------------------------------------------------------------------------
+# Sweep files
+# ---------------------------------------------------------------------------------------
+
+_TOP = {"regime", "t_end_s", "design", "samples", "seed", "outputs", "chunk", "parameters", "protocol", "fixed", "model"}
+
+
+def _number(value, where):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{where} = {value!r} must be a finite number")
+    return float(value)
+
+
+def _check_value(name, value, where):
+    if name in FIELDS:
+        if not FIELDS[name].contains(value):
+            raise InputError(f"{where}: {name} = {value:g} must be in {FIELDS[name].range_text()} {FIELDS[name].unit}")
+    elif name == "period_s" and value <= 0:
+        raise InputError(f"{where}: period_s = {value:g} must be > 0 s")
+    elif name == "post_displacement_mm" and not 0 <= value < 25:
+        raise InputError(f"{where}: post_displacement_mm = {value:g} must be in [0, 25) mm")
+    elif name == "hold_fraction" and not 0 <= value < 0.25:
+        raise InputError(f"{where}: hold_fraction = {value:g} must be in [0, 0.25)")
+
+
+def _axis(name, spec, where):
+    """Grid values of one name: {linspace|logspace = [a, b], n} or {values = [...]}."""
+    if not isinstance(spec, dict):
+        raise InputError(f"{where}: {name} must be {{ linspace = [a, b], n = N }}, {{ logspace = [a, b], n = N }} or {{ values = [...] }}")
+    keys = set(spec) - {"n"}
+    if len(keys) != 1 or next(iter(keys)) not in ("linspace", "logspace", "values"):
+        raise InputError(f"{where}: {name} needs exactly one of linspace, logspace, values (got {sorted(spec)})")
+    kind = next(iter(keys))
+    if kind == "values":
+        values = spec["values"]
+        if not isinstance(values, list) or not values:
+            raise InputError(f"{where}: {name} values must be a non-empty list")
+        return np.array([_number(v, f"{where}: {name} value") for v in values])
+    ends, n = spec[kind], spec.get("n")
+    if not (isinstance(ends, list) and len(ends) == 2):
+        raise InputError(f"{where}: {name} {kind} = {ends!r} must be [first, last]")
+    a, b = (_number(v, f"{where}: {name} {kind} end") for v in ends)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise InputError(f"{where}: {name} n = {n!r} must be a positive integer")
+    if kind == "logspace":
+        if a <= 0 or b <= 0:
+            raise InputError(f"{where}: {name} logspace = [{a:g}, {b:g}] needs positive values (they are the values, not exponents)")
+        return np.geomspace(a, b, n)
+    return np.linspace(a, b, n)
+
+
+def _space_filling(names, specs, design, samples, seed, where):
+    lo, hi, logs = [], [], []
+    for name in names:
+        spec = specs[name]
+        if not isinstance(spec, dict) or set(spec) - {"range", "transform"} or "range" not in spec:
+            raise InputError(f"{where}: with design = {design!r}, {name} must be {{ range = [low, high], transform = \"log\" | \"linear\" }}")
+        a, b = (_number(v, f"{where}: {name} range end") for v in spec["range"])
+        transform = spec.get("transform", "linear")
+        if transform not in ("log", "linear"):
+            raise InputError(f"{where}: {name} transform = {transform!r}; allowed: 'log', 'linear'")
+        if not a < b or (transform == "log" and a <= 0):
+            raise InputError(f"{where}: {name} range = [{a:g}, {b:g}] must have low < high (and low > 0 for log)")
+        lo.append(math.log(a) if transform == "log" else a)
+        hi.append(math.log(b) if transform == "log" else b)
+        logs.append(transform == "log")
+    k = len(names)
+    rng = np.random.default_rng(seed)
+    if design == "lhs":
+        u = (rng.permuted(np.tile(np.arange(samples), (k, 1)), axis=1).T + rng.random((samples, k))) / samples
+    else:
+        from scipy.stats import qmc
+
+        u = qmc.Sobol(k, scramble=True, seed=seed).random(samples)
+    x = np.asarray(lo) + (np.asarray(hi) - np.asarray(lo)) * u
+    return np.where(logs, np.exp(x), x)
+
+
+def read_sweep(path) -> Sweep:
+    """A `Sweep` from a TOML file; any mistake is an `InputError` naming file and key."""
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text()
+        doc = tomllib.loads(text)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such sweep file") from None
+    except (IsADirectoryError, UnicodeDecodeError):
+        raise InputError(f"{path}: not a TOML sweep file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"{path}: not valid TOML ({err})") from None
+    where = str(path)
+    for key in doc:
+        if key not in _TOP:
+            raise InputError(f"{where}: unknown key {key!r}; {suggest(key, sorted(_TOP))}")
+    regime = doc.get("regime", "static")
+    if regime not in ("static", "flex"):
+        raise InputError(f"{where}: regime = {regime!r}; allowed: 'static', 'flex'")
+    t_end = _number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s")
+    if t_end <= 0:
+        raise InputError(f"{where}: t_end_s = {t_end:g} must be > 0 s")
+    outputs = doc.get("outputs", "final")
+    if outputs not in ("final", "series"):
+        raise InputError(f"{where}: outputs = {outputs!r}; allowed: 'final', 'series'")
+    chunk = doc.get("chunk", 64)
+    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        raise InputError(f"{where}: chunk = {chunk!r} must be a positive integer")
+
+    protocol_table = doc.get("protocol", {})
+    for key in protocol_table:
+        if key not in set(PROTOCOL_FIELDS) | {"lumping", "pins"}:
+            raise InputError(f"{where}: unknown key {key!r} in [protocol]; {suggest(key, sorted(set(PROTOCOL_FIELDS) | {'lumping', 'pins'}))}")
+    try:
+        protocol = Protocol(regime=regime, **protocol_table)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{where}: [protocol] {err}") from None
+
+    fixed = doc.get("fixed", {})
+    for name, value in fixed.items():
+        if name not in FIELDS:
+            raise InputError(f"{where}: unknown parameter {name!r} in [fixed]; {suggest(name, FIELDS)}")
+        _check_value(name, _number(value, f"{where}: [fixed] {name}"), where)
+    base = Params().replace(**{k: float(v) for k, v in fixed.items()})
+
+    specs = doc.get("parameters", {})
+    if not isinstance(specs, dict) or not specs:
+        raise InputError(f"{where}: [parameters] must name at least one parameter to sweep")
+    valid = list(FIELDS) + (list(PROTOCOL_FIELDS) if regime == "flex" else [])
+    for name in specs:
+        if name not in valid:
+            hint = " (protocol fields are swept only with regime = \"flex\")" if name in PROTOCOL_FIELDS else ""
+            raise InputError(f"{where}: unknown parameter {name!r} in [parameters]{hint}; {suggest(name, valid)}")
+    names = tuple(specs)
+    design = doc.get("design", "grid")
+    if design == "grid":
+        axes = {n: _axis(n, specs[n], f"{where}: [parameters]") for n in names}
+        mesh = np.meshgrid(*axes.values(), indexing="ij")
+        points = np.stack([m.ravel() for m in mesh], axis=1)
+    elif design in ("lhs", "sobol"):
+        samples = doc.get("samples")
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+            raise InputError(f"{where}: samples = {samples!r} must be a positive integer with design = {design!r}")
+        seed = doc.get("seed", 0)
+        axes = None
+        points = _space_filling(names, specs, design, samples, seed, f"{where}: [parameters]")
+    else:
+        raise InputError(f"{where}: design = {design!r}; allowed: 'grid', 'lhs', 'sobol'")
+    for row in points:
+        for name, value in zip(names, row):
+            _check_value(name, value, f"{where}: [parameters]")
+
+    model = doc.get("model", {})
+    allowed = {"nx", "ny", "beam_segments", "beam_steps_per_cycle", "coupling_interval_s", "rtol", "max_steps"}
+    for key in model:
+        if key not in allowed:
+            raise InputError(f"{where}: unknown key {key!r} in [model]; {suggest(key, sorted(allowed))}")
+    try:
+        grid = None
+        if "nx" in model or "ny" in model:
+            grid = Grid(nx=model.get("nx", 1 if regime == "static" else 50), ny=model.get("ny", 40))
+        beam = BeamGrid(n_segments=model.get("beam_segments", 50), steps_per_cycle=model.get("beam_steps_per_cycle", 200))
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{where}: [model] {err}") from None
+    interval = _number(model.get("coupling_interval_s", 2.0e4), f"{where}: [model] coupling_interval_s")
+    rtol = _number(model.get("rtol", 1e-5), f"{where}: [model] rtol")
+    max_steps = model.get("max_steps", 4096)
+    if interval <= 0 or not 0 < rtol < 1 or isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise InputError(f"{where}: [model] needs coupling_interval_s > 0, rtol in (0, 1), max_steps a positive integer")
+    return Sweep(names, points, axes, protocol, base, t_end, outputs, chunk, grid, beam, interval, rtol, max_steps, text)
+
+
+# ---------------------------------------------------------------------------------------
+# Execution
+# ---------------------------------------------------------------------------------------
+
+
+def batched(sweep: Sweep):
+    """A jitted, vmapped run of a chunk of parameter sets; the chunk's batch axis is
+    sharded over `jax.devices()`. Returns (function, devices); the chunk length must be
+    a multiple of the device count."""
+    devices = jax.devices()
+    mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    fn = jax.jit(jax.vmap(sweep.run_one), in_shardings=sharding)
+
+    def run(values: np.ndarray) -> dict:
+        x = jax.make_array_from_callback(values.shape, sharding, lambda index: values[index])
+        out = fn(x)
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            out = multihost_utils.process_allgather(out, tiled=True)
+        return jax.tree_util.tree_map(np.asarray, out)
+
+    return run, len(devices)
+
+
+def _fingerprint(sweep: Sweep) -> str:
+    return hashlib.sha256((sweep.source + repr(sweep.points.tolist())).encode()).hexdigest()[:16]
+
+
+def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
+    """Run every chunk not already in `out/chunks/` and assemble `out/sweep.nc`.
+    Returns the `xarray.Dataset`."""
+    from tqdm.auto import tqdm
+
+    out = pathlib.Path(out)
+    chunks = out / "chunks"
+    chunks.mkdir(parents=True, exist_ok=True)
+    manifest = chunks / "sweep.json"
+    stamp = {"fingerprint": _fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
+    if manifest.exists():
+        if json.loads(manifest.read_text()) != stamp:
+            raise InputError(f"--resume {out}: the folder holds a different sweep (its file or chunk size changed)")
+    else:
+        atomic_write_text(manifest, json.dumps(stamp))
+    fn, n_dev = batched(sweep)
+    width = -(-sweep.chunk // n_dev) * n_dev  # a multiple of the device count
+    starts = range(0, sweep.size, width)
+    todo = [s for s in starts if not (resume and (chunks / f"{s:08d}.npz").exists())]
+    with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not progress) as bar:
+        for s in todo:
+            values = sweep.points[s : s + width]
+            pad = width - values.shape[0]
+            result = fn(np.concatenate([values, np.repeat(values[-1:], pad, axis=0)]))
+            result = {k: v[: values.shape[0]] for k, v in result.items()}
+            _atomic_npz(chunks / f"{s:08d}.npz", result)
+            bar.update(1)
+    parts = [dict(np.load(chunks / f"{s:08d}.npz")) for s in starts]
+    merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    ds = to_dataset(sweep, merged)
+    write_netcdf(ds, out / "sweep.nc")
+    return ds
+
+
+def _atomic_npz(path, arrays):
+    import os
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+
+
+def to_dataset(sweep: Sweep, values: dict):
+    """The sweep's outputs as an `xarray.Dataset`: one dimension per swept name (grid)
+    or a `sample` dimension (space-filling); failed sets are NaN and flagged."""
+    import xarray as xr
+
+    failed = values["failed"].astype(bool)
+    data = {}
+    for k, unit in OUTPUTS.items():
+        v = np.where(failed.reshape((-1,) + (1,) * (values[k].ndim - 1)), np.nan, values[k])
+        data[k] = (v, unit)
+    extra = ("time_s",) if sweep.outputs == "series" else ()
+    if sweep.axes is not None:
+        dims = tuple(sweep.names)
+        shape = tuple(len(a) for a in sweep.axes.values())
+        coords = {n: (n, a) for n, a in sweep.axes.items()}
+    else:
+        dims, shape = ("sample",), (sweep.size,)
+        coords = {"sample": np.arange(sweep.size)} | {n: ("sample", sweep.points[:, i]) for i, n in enumerate(sweep.names)}
+    if extra:
+        coords["time_s"] = sweep.times()
+    variables = {k: (dims + extra, v.reshape(shape + v.shape[1:])) for k, (v, _) in data.items()}
+    variables["failed"] = (dims, failed.reshape(shape))
+    ds = xr.Dataset(variables, coords=coords)
+    for k, unit in OUTPUTS.items():
+        ds[k].attrs["units"] = unit
+    for n in sweep.names:
+        ds[n].attrs["units"] = FIELDS[n].unit if n in FIELDS else PROTOCOL_FIELDS[n]
+    ds.attrs.update({f"param_{k}": v for k, v in sweep.base.as_dict().items()})
+    ds.attrs.update(regime=sweep.protocol.regime, t_end_s=sweep.t_end_s, outputs=sweep.outputs, failures=int(failed.sum()))
+    return ds
+
+
+# ---------------------------------------------------------------------------------------
+# Local sensitivity
+# ---------------------------------------------------------------------------------------
+
+SENSITIVITY_OUTPUTS = ("dna_ug_per_g", "collagen_mg_per_g", "EI_N_m2", "post_force_max_N")
+
+
+def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEEKS_S, **simulate_kw) -> dict:
+    """{output: {parameter: d ln(output)/d ln(parameter)}} at `t_end_s` (one reverse
+    pass per output; the protocol's floats count as parameters). Outputs that are zero
+    (the post force in static culture) are left out."""
+    params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), params)
+    protocol = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), protocol)
+
+    def outputs(p, q):
+        r = simulate(p, q, t_end_s, **simulate_kw)
+        return jnp.stack([getattr(r, k)[-1] for k in SENSITIVITY_OUTPUTS])
+
+    # jacrev: one reverse pass per output (vmapped over the outputs' cotangents)
+    values, (gp, gq) = jax.jit(lambda p, q: (outputs(p, q), jax.jacrev(outputs, argnums=(0, 1))(p, q)))(params, protocol)
+    out = {}
+    for i, key in enumerate(SENSITIVITY_OUTPUTS):
+        y = float(values[i])
+        if y == 0.0:
+            continue
+        row = {n: float(getattr(gp, n)[i] * getattr(params, n) / y) for n in params.as_dict()}
+        if protocol.regime == "flex":
+            row |= {n: float(getattr(gq, n)[i] * getattr(protocol, n) / y) for n in PROTOCOL_FIELDS}
+        out[key] = row
+    return out

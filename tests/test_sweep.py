@@ -1,0 +1,172 @@
+"""Batch sweeps (values, devices, resume, files) and local sensitivities."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import xarray as xr
+
+import jaxtissue as jt
+from jaxtissue import sweep as sw
+from jaxtissue.cli import main
+from jaxtissue.io import InputError
+
+STATIC = """
+regime = "static"
+t_end_s = 1.8144e6
+chunk = 4
+[parameters]
+k_c_max = { linspace = [1.0e-5, 1.5e-5], n = 3 }
+k_m0 = { logspace = [1.0e-7, 3.0e-7], n = 4 }
+[model]
+ny = 20
+"""
+
+
+def single(sweep, values):
+    params, protocol = sweep.model(values)
+    r = jt.simulate(params, protocol, sweep.t_end_s, sweep.grid, coupling_interval_s=sweep.coupling_interval_s,
+                    beam=sweep.beam, options=jt.SolverOptions(rtol=sweep.rtol, atol=sweep.rtol * 1e-3))
+    return {k: float(getattr(r, k)[-1]) for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa")}
+
+
+@pytest.fixture
+def static_file(tmp_path):
+    path = tmp_path / "static.toml"
+    path.write_text(STATIC)
+    return path
+
+
+def test_grid_sweep_equals_single_runs(static_file, tmp_path):
+    sweep = sw.read_sweep(static_file)
+    assert sweep.size == 12 and sweep.points[1].tolist() == pytest.approx([1.0e-5, 1.0e-7 * 3 ** (1 / 3)])
+    ds = sw.run(sweep, tmp_path / "out")
+    assert dict(ds.sizes) == {"k_c_max": 3, "k_m0": 4}
+    assert ds["collagen_mg_per_g"].attrs["units"] == "mg/g" and ds.attrs["param_k_a"] == 1e-5
+    rng = np.random.default_rng(0)
+    for i, j in zip(rng.integers(0, 3, 3), rng.integers(0, 4, 3)):
+        values = np.array([ds.k_c_max.values[i], ds.k_m0.values[j]])
+        ref = single(sweep, values)
+        for k, v in ref.items():
+            assert float(ds[k][i, j]) == pytest.approx(v, rel=1e-9), k
+    assert xr.load_dataset(tmp_path / "out" / "sweep.nc").equals(ds)
+
+
+def test_four_host_devices_give_the_same_values(static_file, tmp_path):
+    """The batch axis sharded over 4 CPU devices (a subprocess: the device count is
+    fixed when JAX starts)."""
+    code = (
+        "import jax, numpy as np, sys; from jaxtissue import sweep as sw; "
+        "assert len(jax.devices()) == 4, jax.devices(); "
+        f"sw.run(sw.read_sweep({str(static_file)!r}), {str(tmp_path / 'four')!r})"
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    one = sw.run(sw.read_sweep(static_file), tmp_path / "one")
+    four = xr.load_dataset(tmp_path / "four" / "sweep.nc")
+    for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa"):
+        np.testing.assert_allclose(four[k].values, one[k].values, rtol=1e-9)
+
+
+def test_space_filling_designs(tmp_path):
+    path = tmp_path / "lhs.toml"
+    path.write_text('regime = "static"\ndesign = "lhs"\nsamples = 8\nseed = 1\n[parameters]\n'
+                    'k_a = { range = [0.5e-5, 1.5e-5], transform = "log" }\nk_m0 = { range = [1e-7, 3e-7] }\n')
+    sweep = sw.read_sweep(path)
+    assert sweep.points.shape == (8, 2) and sweep.axes is None
+    strata = np.floor((np.log(sweep.points[:, 0]) - np.log(0.5e-5)) / (np.log(3) / 8)).astype(int)
+    assert sorted(strata) == list(range(8))  # one point per stratum
+    path.write_text(path.read_text().replace('"lhs"', '"sobol"'))
+    sobol = sw.read_sweep(path)
+    assert sobol.points.shape == (8, 2) and np.all((sobol.points[:, 1] >= 1e-7) & (sobol.points[:, 1] <= 3e-7))
+
+
+def test_interrupted_sweep_resumes_to_the_same_file(static_file, tmp_path):
+    """Kill the sweep after its first chunk, resume, compare with an uninterrupted run."""
+    static_file.write_text(STATIC.replace("chunk = 4", "chunk = 1").replace("ny = 20", "ny = 160\nrtol = 1e-9"))
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "jaxtissue.cli", "sweep", str(static_file), "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.time() + 300
+    while time.time() < deadline and len(list((out / "chunks").glob("*.npz"))) < 1:
+        time.sleep(0.002)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done = len(list((out / "chunks").glob("*.npz")))
+    assert 1 <= done < 12 and not (out / "sweep.nc").exists()
+    assert main(["sweep", str(static_file), "--out", str(out), "--resume"]) == 0
+    fresh = tmp_path / "fresh"
+    assert main(["sweep", str(static_file), "--out", str(fresh)]) == 0
+    xr.testing.assert_identical(xr.load_dataset(out / "sweep.nc"), xr.load_dataset(fresh / "sweep.nc"))
+
+
+def test_resume_refuses_a_different_sweep(static_file, tmp_path):
+    out = tmp_path / "o"
+    assert main(["sweep", str(static_file), "--out", str(out)]) == 0
+    static_file.write_text(STATIC.replace("n = 3", "n = 2"))
+    with pytest.raises(InputError, match="holds a different sweep"):
+        sw.run(sw.read_sweep(static_file), out, resume=True)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("regime = \"static\"\n[parameters]\nk_cmax = { values = [1e-5] }\n", "unknown parameter 'k_cmax' in [parameters]; did you mean 'k_c_max'?"),
+    ("[parameters]\nperiod_s = { values = [1.0] }\n", "protocol fields are swept only with regime = \"flex\""),
+    ("[parameters]\nk_m0 = { logspace = [0.0, 3e-7], n = 3 }\n", "needs positive values"),
+    ("[parameters]\no_m = { values = [1.5] }\n", "o_m = 1.5 must be in"),
+    ("chunks = 3\n[parameters]\nk_m0 = { values = [1e-7] }\n", "unknown key 'chunks'; did you mean 'chunk'?"),
+    ("design = \"lhs\"\n[parameters]\nk_m0 = { range = [1e-7, 3e-7] }\n", "samples = None must be a positive integer"),
+])
+def test_bad_sweep_files_give_one_line_and_exit_2(tmp_path, capsys, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert main(["sweep", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+def test_failed_parameter_sets_are_marked_not_fatal(tmp_path):
+    """A step budget that one set needs ~85 steps for and the other ~375: the second
+    fails, is NaN and flagged, and the first is still computed."""
+    path = tmp_path / "f.toml"
+    path.write_text('regime = "static"\nt_end_s = 1.8144e6\n[parameters]\nQ_o = { values = [8.393e-4, 8.393e-2] }\n'
+                    '[model]\nny = 20\nmax_steps = 150\n')
+    out = tmp_path / "o"
+    assert main(["sweep", str(path), "--out", str(out)]) == 0
+    ds = xr.load_dataset(out / "sweep.nc")
+    assert ds["failed"].values.tolist() == [False, True] and ds.attrs["failures"] == 1
+    assert np.isfinite(ds["dna_ug_per_g"].values[0]) and np.isnan(ds["dna_ug_per_g"].values[1])
+    summary = __import__("json").loads((out / "summary.json").read_text())
+    assert summary["failures"] == 1 and summary["failed_points"] == [[8.393e-2]]
+
+
+# ---- sensitivity
+
+
+def test_sensitivities_match_finite_differences():
+    """Fixed steps: the same discrete map at every parameter value, so differences are
+    not polluted by step-size control."""
+    p = jt.paper_parameters()
+    grid, options = jt.Grid(1, 16), jt.SolverOptions(fixed_steps=300)
+    table = sw.sensitivities(p, jt.Protocol.static(), jt.THREE_WEEKS_S, grid=grid, options=options)
+    assert "post_force_max_N" not in table  # zero in static culture
+    for name in ("k_m0", "k_c_max", "o_m"):
+        h = 1e-4
+
+        def collagen(f):
+            r = jt.simulate(p.replace(**{name: getattr(p, name) * f}), jt.Protocol.static(), jt.THREE_WEEKS_S, grid, options=options)
+            return np.log(float(r.collagen_mg_per_g[-1]))
+        fd = (collagen(1 + h) - collagen(1 - h)) / (np.log(1 + h) - np.log(1 - h))
+        assert table["collagen_mg_per_g"][name] == pytest.approx(fd, rel=1e-3, abs=1e-6), name
+    assert table["EI_N_m2"]["E_s_kPa"] > 0
+
+
+def test_sensitivity_command(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert main(["sensitivity", "--grid", "1", "12", "--out", str(out)]) == 0
+    assert (out / "sensitivity.json").exists() and (out / "sensitivity.png").exists()
+    assert "k_m0" in capsys.readouterr().out
