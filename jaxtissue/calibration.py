@@ -24,7 +24,6 @@ import dataclasses
 import functools
 import math
 import pathlib
-import tomllib
 from typing import NamedTuple
 
 import jax
@@ -35,7 +34,7 @@ import optimistix as optx
 from .beam import BeamGrid
 from .data import DataError, Observation, read_measurements
 from .grid import Grid
-from .io import InputError
+from .io import InputError, read_toml
 from .params import FIELDS, Params, suggest
 from .simulate import Protocol, SolverOptions, save_times, simulate
 
@@ -395,18 +394,8 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
     """A `Problem` from a TOML file (see `calibrate/engelmayr2005.toml`); every mistake
     is an `InputError` naming the file and the key. `overrides` replace [fit] keys."""
     path = pathlib.Path(path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such problem file") from None
-    except (IsADirectoryError, UnicodeDecodeError):
-        raise InputError(f"{path}: not a TOML problem file") from None
-    except tomllib.TOMLDecodeError as err:
-        raise InputError(f"{path}: not valid TOML ({err})") from None
+    doc, _ = read_toml(path, "problem", _TOP)
     where = str(path)
-    for k in doc:
-        if k not in _TOP:
-            raise InputError(f"{where}: unknown key {k!r}; {suggest(k, sorted(_TOP))}")
     if "measurements" not in doc or not isinstance(doc["measurements"], str):
         raise InputError(f"{where}: measurements = \"FILE.csv\" (relative to the problem file) is required")
     try:

@@ -54,6 +54,25 @@ def result_to_xarray(result):
     return ds
 
 
+def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
+    """A TOML file's (table, text); a missing or malformed file, or a top-level key not
+    in `keys`, is an `InputError` naming the file (`kind`: "sweep", "problem", ...)."""
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text()
+        doc = tomllib.loads(text)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such {kind} file") from None
+    except (IsADirectoryError, UnicodeDecodeError):
+        raise InputError(f"{path}: not a TOML {kind} file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"{path}: not valid TOML ({err})") from None
+    for key in doc if keys is not None else ():
+        if key not in keys:
+            raise InputError(f"{path}: unknown key {key!r}; {suggest(key, sorted(keys))}")
+    return doc, text
+
+
 def write_params_toml(params: Params, path) -> None:
     """A TOML file loadable by `read_params_toml` (and `jaxtissue simulate --params`)."""
     lines = ["# jaxtissue model parameters (units: see `jaxtissue params`)", "[parameters]"]

@@ -20,7 +20,6 @@ import hashlib
 import json
 import math
 import pathlib
-import tomllib
 
 import equinox as eqx
 import jax
@@ -29,7 +28,7 @@ import numpy as np
 
 from .beam import BeamGrid
 from .grid import Grid
-from .io import InputError, atomic_write_text, write_netcdf
+from .io import InputError, atomic_write_text, read_toml, write_netcdf
 from .params import FIELDS, Params, suggest
 from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, simulate
 
@@ -173,19 +172,8 @@ def _space_filling(names, specs, design, samples, seed, where):
 def read_sweep(path) -> Sweep:
     """A `Sweep` from a TOML file; any mistake is an `InputError` naming file and key."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text()
-        doc = tomllib.loads(text)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such sweep file") from None
-    except (IsADirectoryError, UnicodeDecodeError):
-        raise InputError(f"{path}: not a TOML sweep file") from None
-    except tomllib.TOMLDecodeError as err:
-        raise InputError(f"{path}: not valid TOML ({err})") from None
+    doc, text = read_toml(path, "sweep", _TOP)
     where = str(path)
-    for key in doc:
-        if key not in _TOP:
-            raise InputError(f"{where}: unknown key {key!r}; {suggest(key, sorted(_TOP))}")
     regime = doc.get("regime", "static")
     if regime not in ("static", "flex"):
         raise InputError(f"{where}: regime = {regime!r}; allowed: 'static', 'flex'")

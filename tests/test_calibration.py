@@ -156,6 +156,7 @@ def test_noisy_synthetic_data_recover_within_three_standard_errors(tmp_path):
     assert best.chi2 < 3 * len(problem.observations)  # a sensible fit: χ² ~ n − k
 
 
+@pytest.mark.slow
 def test_profiles_flag_a_parameter_the_data_cannot_see(tmp_path):
     """lumping_C only acts in flexed culture: with static data only its profile is flat."""
     free = ["lumping_C", "k_m0"]

@@ -165,6 +165,7 @@ def test_sensitivities_match_finite_differences():
     assert table["EI_N_m2"]["E_s_kPa"] > 0
 
 
+@pytest.mark.slow
 def test_sensitivity_command(tmp_path, capsys):
     out = tmp_path / "s"
     assert main(["sensitivity", "--grid", "1", "12", "--out", str(out)]) == 0
