@@ -69,7 +69,9 @@ def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
         raise InputError(f"{path}: not valid TOML ({err})") from None
     for key in doc if keys is not None else ():
         if key not in keys:
-            raise InputError(f"{path}: unknown key {key!r}; {suggest(key, sorted(keys))}")
+            hint = suggest(key, sorted(keys))
+            hint = hint if hint.startswith("did you mean") else f"allowed: {', '.join(sorted(keys))}"
+            raise InputError(f"{path}: unknown key {key!r}; {hint}")
     return doc, text
 
 

@@ -171,3 +171,10 @@ def test_sensitivity_command(tmp_path, capsys):
     assert main(["sensitivity", "--grid", "1", "12", "--out", str(out)]) == 0
     assert (out / "sensitivity.json").exists() and (out / "sensitivity.png").exists()
     assert "k_m0" in capsys.readouterr().out
+
+
+def test_unknown_top_level_key_lists_the_allowed_ones(tmp_path, capsys):
+    path = tmp_path / "s.toml"
+    path.write_text('measurements = "x.csv"\n')
+    assert main(["sweep", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert "unknown key 'measurements'; allowed: chunk, design, fixed" in capsys.readouterr().err
