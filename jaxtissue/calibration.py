@@ -34,9 +34,10 @@ import optimistix as optx
 from .beam import BeamGrid
 from .data import DataError, Observation, read_measurements
 from .grid import Grid
-from .io import InputError, read_toml
+from .io import InputError, params_from_table, read_toml
 from .params import FIELDS, Params, suggest
 from .simulate import Protocol, SolverOptions, save_times, simulate
+from .sweep import unit_latin_hypercube
 
 CHI2_95 = 3.841458820694124
 """95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
@@ -185,9 +186,6 @@ class Problem:
         mean, sd = self.data()
         return (self.model_values(t) - mean) / sd
 
-    def failed(self, t) -> jax.Array:
-        return jnp.any(jnp.stack([r.failed for r in self.simulate(self.params(t)).values()]))
-
 
 # ---------------------------------------------------------------------------------------
 # Fitting
@@ -199,9 +197,7 @@ def latin_hypercube(problem: Problem, n: int, seed: int) -> np.ndarray:
     Latin hypercube over the transformed bounds."""
     lo, hi = (np.asarray(b) for b in problem.t_bounds())
     base = np.asarray(problem.t_from_values([getattr(problem.base, f) for f in problem.names]))
-    rng = np.random.default_rng(seed)
-    k = max(n - 1, 0)
-    strata = (rng.permuted(np.tile(np.arange(k), (len(lo), 1)), axis=1).T + rng.random((k, len(lo)))) / max(k, 1)
+    strata = unit_latin_hypercube(max(n - 1, 0), len(lo), np.random.default_rng(seed))
     starts = np.concatenate([np.clip(base, lo, hi)[None], lo + (hi - lo) * strata])
     return starts[:n]
 
@@ -216,6 +212,12 @@ class FitResult(NamedTuple):
     steps_all: np.ndarray  # LM steps per start
     converged_all: np.ndarray
     model_evaluations: int  # residual + Jacobian evaluations, all starts
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled(problem: Problem, jacobian: bool):
+    """The problem's jitted residuals or their forward-mode Jacobian (cached)."""
+    return jax.jit(jax.jacfwd(problem.residuals) if jacobian else problem.residuals)
 
 
 @functools.lru_cache(maxsize=8)
@@ -287,7 +289,7 @@ class Fisher(NamedTuple):
 
 def fisher(problem: Problem, t) -> Fisher:
     """Laplace approximation at t: Σ_t = (JᵀJ)⁺ with the exact J = ∂r/∂t."""
-    J = np.asarray(jax.jit(jax.jacfwd(problem.residuals))(jnp.asarray(t)))
+    J = np.asarray(_compiled(problem, jacobian=True)(jnp.asarray(t)))
     cov = np.linalg.pinv(J.T @ J)
     se_t = np.sqrt(np.maximum(np.diag(cov), 0.0))
     values = np.asarray(problem.values_from_t(jnp.asarray(t)))
@@ -385,8 +387,11 @@ def _settings(cls, table, where, section):
             raise InputError(f"{where}: [{section}] {k} = {v!r} must be {need}")
         kwargs[k] = type(default)(v)
     settings = cls(**kwargs)
-    if cls is ModelSettings and (settings.ny < 3 or settings.beam_segments < 4 or settings.beam_segments % 2 or settings.beam_steps_per_cycle < 8):
-        raise InputError(f"{where}: [model] needs ny >= 3, beam_segments even and >= 4, beam_steps_per_cycle >= 8")
+    if cls is ModelSettings:
+        try:  # the grids' own checks
+            settings.grid("flex"), settings.beam()
+        except ValueError as err:
+            raise InputError(f"{where}: [model] {err}") from None
     return settings
 
 
@@ -405,24 +410,14 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
 
     parameters = _table(doc, "parameters", where, {"free", "fixed"})
     fixed = _table(parameters, "fixed", where)
-    changes = {}
-    for name, value in fixed.items():
-        if name not in FIELDS:
-            raise InputError(f"{where}: unknown parameter {name!r} in [parameters.fixed]; {suggest(name, FIELDS)}")
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(f"{where}: [parameters.fixed] {name} = {value!r} must be a number ({FIELDS[name].unit})")
-        changes[name] = float(value)
-    try:
-        base = Params().replace(**changes)
-    except ValueError as err:
-        raise InputError(f"{where}: [parameters.fixed] {err}") from None
+    base = params_from_table(fixed, f"{where} [parameters.fixed]")
 
     free = []
     for name, spec in _table(parameters, "free", where).items():
         key = f"[parameters.free] {name}"
         if name not in FIELDS:
             raise InputError(f"{where}: unknown parameter {name!r} in [parameters.free]; {suggest(name, FIELDS)}")
-        if name in changes:
+        if name in fixed:
             raise InputError(f"{where}: {name} is both free and fixed")
         if not isinstance(spec, dict) or "bounds" not in spec:
             raise InputError(f"{where}: {key} must be {{ bounds = [low, high], transform = \"log\" | \"linear\" }}")
@@ -496,7 +491,7 @@ class Calibration(NamedTuple):
 def jacobian_fd_error(problem: Problem, t, J, h=1e-3) -> float:
     """Max deviation of the exact Jacobian from central differences (step h in t),
     relative to the largest entry."""
-    res = jax.jit(problem.residuals)
+    res = _compiled(problem, jacobian=False)
     cols = []
     for i in range(len(t)):
         e = np.zeros(len(t))
@@ -519,7 +514,8 @@ def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = Fal
     seconds["fit"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     fi = fisher(problem, best.t)
-    model = np.asarray(jax.jit(problem.model_values)(jnp.asarray(best.t)))
+    mean, sd = problem.data()
+    model = mean + sd * np.asarray(_compiled(problem, jacobian=False)(jnp.asarray(best.t)))
     check = jacobian_fd_error(problem, best.t, fi.jacobian)
     seconds["uncertainty"] = time.perf_counter() - t0
     profs = []

@@ -61,11 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid cells along x and across y (default 1 40 static, 50 40 flex)")
     _flex_arguments(s)
     s.add_argument("--lumping", choices=["dispersive", "paper"], default="dispersive", help="cycle-to-growth coupling rule (default dispersive)")
-    s.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
-    s.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file (e.g. a params.toml written here)")
+    _parameter_arguments(s)
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
-    s.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
-    s.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    _output_arguments(s)
     s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
     s.set_defaults(func=cmd_simulate)
 
@@ -75,18 +73,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--ny", type=_grid_size, default=40, help="cells across the thickness (default 40)")
     c.add_argument("--segments", type=_grid_size, default=50, help="beam segments along the strip (default 50)")
     c.add_argument("--steps", type=_grid_size, default=200, help="time steps per cycle (default 200)")
-    c.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
-    c.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
-    c.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
-    c.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    _parameter_arguments(c)
+    _output_arguments(c)
     c.set_defaults(func=cmd_cycle)
 
     r = sub.add_parser("reproduce", help="the paper's static and flex study into figures and a report")
     r.add_argument("--t-end", type=_positive_float, default=2.0e6, metavar="S", help="end of culture in seconds (default 2.0e6)")
-    r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
-    r.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
-    r.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
-    r.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    _parameter_arguments(r)
+    _output_arguments(r)
     r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     r.set_defaults(func=cmd_reproduce)
 
@@ -94,8 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("problem", metavar="PROBLEM.toml", help="problem file, e.g. calibrate/engelmayr2005.toml")
     k.add_argument("--starts", type=_grid_size, default=None, metavar="N", help="number of starts (default: the problem's [fit] starts)")
     k.add_argument("--no-profiles", action="store_true", help="skip the profile likelihoods (identifiability then from standard errors)")
-    k.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
-    k.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    _output_arguments(k)
     k.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     k.set_defaults(func=cmd_calibrate)
 
@@ -112,12 +105,20 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--t-end", type=_positive_float, default=1.8144e6, metavar="S", help="time of the outputs in s (default 3 weeks)")
     n.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid (default 1 40 static, 50 40 flex)")
     _flex_arguments(n)
-    n.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
-    n.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
-    n.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
-    n.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    _parameter_arguments(n)
+    _output_arguments(n)
     n.set_defaults(func=cmd_sensitivity)
     return parser
+
+
+def _parameter_arguments(parser):
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
+    parser.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
+
+
+def _output_arguments(parser):
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
 
 
 def _flex_arguments(parser):

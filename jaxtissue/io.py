@@ -99,14 +99,20 @@ def read_params_toml(path, base: Params | None = None) -> Params:
     table = doc.get("parameters", doc)
     if not isinstance(table, dict):
         raise InputError(f"{path}: [parameters] must be a table of name = value")
+    return params_from_table(table, str(path), base)
+
+
+def params_from_table(table: dict, where: str, base: Params | None = None) -> Params:
+    """Validated `Params` from a TOML table of `name = value` (names not given keep
+    `base`); a mistake is an `InputError` starting with `where`."""
     changes = {}
     for name, value in table.items():
         if name not in FIELDS:
-            raise InputError(f"{path}: unknown parameter {name!r}; {suggest(name, FIELDS)}")
+            raise InputError(f"{where}: unknown parameter {name!r}; {suggest(name, FIELDS)}")
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(f"{path}: parameter {name} = {value!r} must be a number ({FIELDS[name].unit})")
+            raise InputError(f"{where}: parameter {name} = {value!r} must be a number ({FIELDS[name].unit})")
         changes[name] = float(value)
-    return make_params(changes, base, where=str(path))
+    return make_params(changes, base, where=where)
 
 
 def parse_assignment(text: str) -> tuple[str, float]:
@@ -156,11 +162,16 @@ def _umask() -> int:
 
 def atomic_write_text(path, text: str) -> None:
     """Write via a temporary file in the same folder, then rename."""
+    atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def atomic_write(path, write) -> None:
+    """`write(binary file)` into a temporary file in the same folder, then rename."""
     path = pathlib.Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            write(f)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
