@@ -27,18 +27,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .beam import BeamGrid
+from .data import QUANTITIES
 from .grid import Grid
 from .io import InputError, atomic_write, atomic_write_text, params_from_table, read_toml, write_netcdf
 from .params import FIELDS, Params, suggest
 from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, save_times, simulate
 
-OUTPUTS = {
-    "dna_ug_per_g": "ug/g",
-    "collagen_mg_per_g": "mg/g",
-    "E_eff_kPa": "kPa",
-    "EI_N_m2": "N m^2",
-    "post_force_max_N": "N",
-}
+OUTPUTS = QUANTITIES | {"EI_N_m2": "N m^2"}  # the `Result` series a sweep keeps, and units
 PROTOCOL_FIELDS = {"period_s": "s", "post_displacement_mm": "mm", "hold_fraction": "1"}
 
 
