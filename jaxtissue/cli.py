@@ -4,6 +4,10 @@
     jaxtissue simulate --regime static|flex … one culture, to a folder of files and figures
     jaxtissue cycle …                        one loading cycle of the poroelastic beam
     jaxtissue reproduce --out DIR            the paper's study: six cases, figures, report
+    jaxtissue calibrate PROBLEM.toml --out DIR   fit parameters to measurements
+    jaxtissue sweep SWEEP.toml --out DIR     a batch of simulations
+    jaxtissue sensitivity --out DIR          d ln(output)/d ln(parameter)
+    jaxtissue optimize PROBLEM.toml --out DIR    the best conditioning protocol
 
 A mistake in the input gives one line on stderr and exit code 2; a failed solve gives
 one line and exit code 1. Output folders appear complete or not at all.
@@ -63,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lumping", choices=["dispersive", "paper"], default="dispersive", help="cycle-to-growth coupling rule (default dispersive)")
     _parameter_arguments(s)
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
+    s.add_argument("--max-steps", type=_grid_size, default=4096, metavar="N", help="step limit of each growth solve (default 4096)")
     _output_arguments(s)
     s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
     s.set_defaults(func=cmd_simulate)
@@ -108,6 +113,15 @@ def build_parser() -> argparse.ArgumentParser:
     _parameter_arguments(n)
     _output_arguments(n)
     n.set_defaults(func=cmd_sensitivity)
+
+    o = sub.add_parser("optimize", help="gradient-based design of a conditioning protocol, checked against a brute-force grid")
+    o.add_argument("problem", metavar="PROBLEM.toml", help="optimisation problem (see optimize/*.toml)")
+    o.add_argument("--starts", type=_grid_size, default=None, help="number of starts (overrides the problem file)")
+    o.add_argument("--steps", type=_grid_size, default=None, help="Adam steps per start (overrides the problem file)")
+    o.add_argument("--grid-points", type=_grid_size, default=None, metavar="N", help="brute-force grid points per axis (overrides the problem file)")
+    _output_arguments(o)
+    o.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
+    o.set_defaults(func=cmd_optimize)
     return parser
 
 
@@ -170,14 +184,10 @@ def cmd_simulate(args) -> int:
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     result = simulate(
         params, protocol, t_end_s=args.t_end, grid=grid,
-        options=SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3), progress=progress,
+        options=SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps), progress=progress,
     )
     if bool(result.failed):
-        print(
-            f"jaxtissue: error: the growth solve failed after {int(result.num_steps)} steps; "
-            "try a tighter --rtol or a finer --grid. Nothing was written.",
-            file=sys.stderr,
-        )
+        print(f"jaxtissue: error: {result.failure_message()}. Nothing was written.", file=sys.stderr)
         return 1
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_netcdf(result.to_xarray(), tmp / "result.nc")
@@ -251,7 +261,7 @@ def cmd_reproduce(args) -> int:
     results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
     failed = [name for name, r in results.items() if bool(r.failed)]
     if failed:
-        print(f"jaxtissue: error: the solve failed for {', '.join(failed)}; nothing was written.", file=sys.stderr)
+        print(f"jaxtissue: error: {'; '.join(f'{n}: {results[n].failure_message()}' for n in failed)}. Nothing was written.", file=sys.stderr)
         return 1
     with io.output_folder(args.out, args.overwrite) as tmp:
         reproduce.write(results, params, tmp)
@@ -274,6 +284,23 @@ def cmd_calibrate(args) -> int:
         calibration.write(cal, tmp)
     print(f"chi2 = {cal.fit.chi2:.4g}; " + ", ".join(f"{n} = {v:.4g}" for n, v in zip(problem.names, cal.fit.values)))
     print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png)")
+    return 0
+
+
+def cmd_optimize(args) -> int:
+    from . import io, optimization
+
+    overrides = {k: v for k, v in (("starts", args.starts), ("steps", args.steps), ("grid_points", args.grid_points)) if v is not None}
+    design = optimization.read_design(args.problem, overrides)
+    io.check_output_folder(args.out, args.overwrite)
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    study = optimization.run(design, progress=progress)
+    with io.output_folder(args.out, args.overwrite) as tmp:
+        optimization.write(study, tmp)
+    s = optimization.summary(study)
+    print(f"{s['sense']} {design.objective}: optimum {s['objective']:.5g} {s['objective_unit']} at {s['optimum']} "
+          f"(paper protocol {s['baseline_objective']:.5g}, best grid point {s['grid_best_objective']:.5g})")
+    print(f"wrote {args.out}/ (summary.json, params.toml, report.md, landscape.png, history.png)")
     return 0
 
 

@@ -19,6 +19,8 @@ UNITS = {
     "collagen_mg_per_g": ("mg/g", "collagen content per wet weight (A.24)"),
     "E_eff_kPa": ("kPa", "effective flexural modulus 12 EI/(h^3 d) (A.25)"),
     "EI_N_m2": ("N m^2", "flexural rigidity at the mid-section (A.25)"),
+    "post_force_max_N": ("N", "peak post force of a loading cycle with the ECM of that time (0: static)"),
+    "surface_strain_max": ("1", "peak surface fibre strain of that loading cycle (0: static)"),
     "profile_o": ("1", "O2 o = rho_o/(5 rho_o,ext) at the mid-section"),
     "profile_c": ("1", "cell density c = rho_c/rho_c,seed at the mid-section"),
     "profile_m": ("1", "ECM m = rho_m/rho_m,max at the mid-section"),
@@ -36,7 +38,7 @@ def result_to_xarray(result):
     """The `Result` as an `xarray.Dataset`; units and the parameters in attributes."""
     import xarray as xr
 
-    series = {k: ("time_s", np.asarray(getattr(result, k))) for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2")}
+    series = {k: ("time_s", np.asarray(getattr(result, k))) for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "post_force_max_N", "surface_strain_max")}
     profiles = {k: (("time_s", "y_cm"), np.asarray(getattr(result, k))) for k in ("profile_o", "profile_c", "profile_m")}
     fields = {k: (("x_cm", "y_cm"), np.asarray(getattr(result.final, k))) for k in ("o", "c", "m")}
     ds = xr.Dataset(
@@ -51,6 +53,8 @@ def result_to_xarray(result):
     ds.attrs.update(result.params.as_dict())
     ds.attrs["solver_steps"] = int(np.asarray(result.num_steps))
     ds.attrs["solver_failed"] = int(bool(np.asarray(result.failed)))
+    ds.attrs["status"] = int(np.asarray(result.status))
+    ds.attrs["t_reached_s"] = float(np.asarray(result.t_reached_s))
     return ds
 
 

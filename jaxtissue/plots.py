@@ -235,3 +235,74 @@ def sensitivities(table, path, title=""):
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def protocol_landscape(study, path):
+    """The objective over the grid of constant protocols (infeasible points hatched),
+    each start's optimisation path, the optimum, the best grid point and the paper's
+    protocol. For a schedule the path shows each stage's (period, displacement)."""
+    from .optimization import BASELINE, OBJECTIVES
+
+    d, g, o = study.design, study.grid, study.optimum
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    P, U = np.meshgrid(g.periods_s, g.displacements_mm, indexing="ij")
+    cs = ax.contourf(P, U, g.objective, levels=20, cmap="viridis")
+    fig.colorbar(cs, ax=ax, label=f"{OBJECTIVES[d.objective].label} ({OBJECTIVES[d.objective].unit})")
+    if not np.all(g.feasible):
+        ax.contourf(P, U, (~g.feasible).astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"])
+        ax.contour(P, U, g.feasible.astype(float), levels=[0.5], colors="w", linewidths=1.0)
+    for i in range(o.path.shape[1]):
+        for k in range(d.stages):
+            ax.plot(o.path[:, i, k, 0], o.path[:, i, k, 1], "-", color="w", lw=0.8, alpha=0.8)
+            ax.plot(o.path[0, i, k, 0], o.path[0, i, k, 1], "o", color="w", ms=3)
+    if o.best is not None:
+        ax.plot(o.best[:, 0], o.best[:, 1], "*", color="r", ms=14, mec="k", label="gradient optimum", zorder=5)
+    if g.best is not None:
+        ax.plot(g.best["period_s"], g.best["post_displacement_mm"], "s", mfc="none", mec="orange", ms=10, mew=2, label="best grid point")
+    ax.plot(BASELINE["period_s"], BASELINE["post_displacement_mm"], "D", color="k", ms=6, label="paper (1 Hz, 5 mm)")
+    ax.set(xscale="log", xlabel="period T (s)", ylabel="post displacement u_max (mm)",
+           title="objective over constant protocols" + ("" if np.all(g.feasible) else " (hatched: infeasible)"))
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def optimisation_history(study, path):
+    """Objective per Adam step for every start (feasible iterates filled), with the
+    best grid point and the paper's protocol for reference."""
+    from .optimization import OBJECTIVES
+
+    d, o = study.design, study.optimum
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    steps = np.arange(o.objective.shape[0])
+    for i in range(o.objective.shape[1]):
+        line, = ax.plot(steps, o.objective[:, i], "-", lw=1, label=f"start {i}")
+        ax.plot(steps[o.feasible[:, i]], o.objective[o.feasible[:, i], i], "o", ms=3, color=line.get_color())
+    if study.grid.best is not None:
+        ax.axhline(study.grid.best_objective, color="orange", ls="--", label="best grid point")
+    ax.axhline(study.baseline_objective, color="k", ls=":", label="paper protocol")
+    ax.set(xlabel="Adam step", ylabel=f"{OBJECTIVES[d.objective].unit}", title=f"{OBJECTIVES[d.objective].label} (dots: constraints met)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def schedule(study, path):
+    """The optimal schedule's period and post displacement per stage, against the best
+    constant protocol."""
+    d, best = study.design, study.optimum.best
+    if best is None:
+        return
+    weeks = np.arange(d.stages + 1) * d.stage_length_s / (7 * DAY_S)
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+    for ax, k, label in ((axes[0], 0, "period T (s)"), (axes[1], 1, "post displacement (mm)")):
+        ax.stairs(best[:, k], weeks, lw=2, label="optimal schedule")
+        if study.grid.best is not None:
+            ax.axhline(list(study.grid.best.values())[k], color="orange", ls="--", label="best constant (grid)")
+        ax.set(xlabel="stage start (weeks)", ylabel=label)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -30,6 +30,11 @@ class Protocol(eqx.Module):
     displacement u_M(t) of eq. A.22; `period_s`, `post_displacement_mm` and
     `hold_fraction` are differentiable. `lumping` is the coupling rule (`coupling.RULES`),
     `pins` where the posts hold the strip ("centroid" or "bottom" corners).
+
+    A schedule (`Protocol.schedule(...)`): `period_s` and `post_displacement_mm` hold one
+    value per stage of `stage_length_s` seconds (the last stage lasts to the end); each
+    coupling interval uses the stage that holds its start (`at`). Differentiable like
+    the constant protocol.
     """
 
     regime: str = eqx.field(static=True, default="static")
@@ -38,6 +43,7 @@ class Protocol(eqx.Module):
     hold_fraction: float = 0.05
     lumping: str = eqx.field(static=True, default="dispersive")
     pins: str = eqx.field(static=True, default="centroid")
+    stage_length_s: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if self.regime not in ("static", "flex"):
@@ -48,13 +54,20 @@ class Protocol(eqx.Module):
             raise ValueError(f"pins = {self.pins!r}; allowed: 'centroid', 'bottom'")
         checks = (
             ("period_s", lambda v: v > 0, "> 0 s"),
-            ("post_displacement_mm", lambda v: 0 <= v < 25.0, "in [0, 25) mm (below the strip length)"),
-            ("hold_fraction", lambda v: 0 <= v < 0.25, "in [0, 0.25)"),
+            ("post_displacement_mm", lambda v: (0 <= v) & (v < 25.0), "in [0, 25) mm (below the strip length)"),
+            ("hold_fraction", lambda v: (0 <= v) & (v < 0.25), "in [0, 0.25)"),
         )
         for name, ok, allowed in checks:
             value = concrete_value(getattr(self, name))
             if value is not None and not (np.all(np.isfinite(value)) and np.all(ok(value))):
-                raise ValueError(f"protocol {name} = {np.ravel(value)[0]:g} must be {allowed}")
+                bad = np.ravel(value)[~np.ravel(np.isfinite(value) & ok(np.where(np.isfinite(value), value, 0)))][0]
+                raise ValueError(f"protocol {name} = {bad:g} must be {allowed}")
+        if self.stage_length_s is not None:
+            if not (isinstance(self.stage_length_s, (int, float)) and math.isfinite(self.stage_length_s) and self.stage_length_s > 0):
+                raise ValueError(f"protocol stage_length_s = {self.stage_length_s!r} must be a positive number of seconds")
+            shapes = {np.shape(self.period_s), np.shape(self.post_displacement_mm)}
+            if len(shapes) != 1 or len(next(iter(shapes))) != 1 or next(iter(shapes))[0] < 1:
+                raise ValueError("a schedule's period_s and post_displacement_mm must be lists of the same length (one value per stage)")
 
     @classmethod
     def static(cls) -> "Protocol":
@@ -63,6 +76,27 @@ class Protocol(eqx.Module):
     @classmethod
     def flex(cls, period_s=1.0, post_displacement_mm=5.0, hold_fraction=0.05, lumping="dispersive", pins="centroid") -> "Protocol":
         return cls("flex", period_s, post_displacement_mm, hold_fraction, lumping, pins)
+
+    @classmethod
+    def schedule(cls, period_s, post_displacement_mm, stage_length_s=604800.0, hold_fraction=0.05, lumping="dispersive", pins="centroid") -> "Protocol":
+        """Piecewise-constant flexure: stage k (from k·stage_length_s, default weekly)
+        uses period_s[k] and post_displacement_mm[k]."""
+        return cls("flex", jnp.asarray(period_s, float), jnp.asarray(post_displacement_mm, float), hold_fraction, lumping, pins, float(stage_length_s))
+
+    @property
+    def stages(self) -> int:
+        """Number of stages (1 for a constant protocol)."""
+        return 1 if self.stage_length_s is None else int(np.shape(self.period_s)[0])
+
+    def at(self, t_s) -> "Protocol":
+        """The constant protocol in force at time `t_s` (s)."""
+        if self.stage_length_s is None:
+            return self
+        k = jnp.clip(jnp.floor(t_s / self.stage_length_s), 0, self.stages - 1).astype(int)
+        return Protocol(self.regime, self.period_s[k], self.post_displacement_mm[k], self.hold_fraction, self.lumping, self.pins)
+
+    def stage_starts_s(self) -> np.ndarray:
+        return np.arange(self.stages) * (self.stage_length_s or 0.0)
 
 
 class SolverOptions(eqx.Module):
@@ -108,14 +142,29 @@ class SolverOptions(eqx.Module):
         return diffrax.StepTo(ts=t0 + span * jnp.concatenate([jnp.zeros(1), frac]))
 
 
+STATUS = {
+    0: ("ok", ""),
+    1: ("the growth solve reached its step limit", "raise --max-steps (SolverOptions.max_steps) or loosen --rtol"),
+    2: ("the beam's Newton solve did not converge in a loading cycle", "try a smaller post displacement or more beam steps per cycle"),
+    3: ("concentrations left their physical bounds (NaN, o/c/m < 0, m > 1 or c > c_max)", "try a tighter --rtol or a finer --grid"),
+    4: ("the growth solve failed", "try a tighter --rtol or a finer --grid"),
+}
+"""`Result.status` codes: (what happened, a hint)."""
+
+BOUNDS_TOL = 1e-4
+"""How far concentrations may leave their bounds before a run is marked failed."""
+
+
 class Result(eqx.Module):
     """The outputs of `simulate` (MODEL.md §3), at the save times `ts` (s; static, so
     `result.index(t)` works inside `jit` and `grad`).
 
     Series have a leading time axis; `profile_*` are mid-section profiles across the
-    thickness (axis `y_cm`); `final` holds the last 2-D fields. `post_force_max_N` is the
-    peak post force of a loading cycle with the ECM of that time (0 in static culture).
-    `failed` is True when a solve stopped early (the values are then not valid).
+    thickness (axis `y_cm`); `final` holds the last 2-D fields. `post_force_max_N` and
+    `surface_strain_max` are the peak post force and peak surface fibre strain of a loading
+    cycle with the ECM of that time (0 in static culture).
+    `failed` is True when a solve stopped early or the concentrations left their
+    bounds; `status` says why (`STATUS`) and `t_reached_s` until when the run is valid.
     """
 
     ts: tuple = eqx.field(static=True)
@@ -124,6 +173,7 @@ class Result(eqx.Module):
     E_eff_kPa: jax.Array
     EI_N_m2: jax.Array
     post_force_max_N: jax.Array
+    surface_strain_max: jax.Array
     profile_o: jax.Array
     profile_c: jax.Array
     profile_m: jax.Array
@@ -132,7 +182,17 @@ class Result(eqx.Module):
     y_cm: jax.Array
     num_steps: jax.Array
     failed: jax.Array
+    status: jax.Array
+    t_reached_s: jax.Array
     params: Params
+
+    def failure_message(self) -> str:
+        """One line: what failed, the simulated time reached and a hint ('' if none)."""
+        code = int(self.status)
+        if code == 0:
+            return ""
+        what, hint = STATUS[code]
+        return f"{what} at t = {float(self.t_reached_s):g} s (of {self.ts[-1]:g} s); {hint}"
 
     def index(self, t_s: float) -> int:
         """The index of the save time closest to `t_s`."""
@@ -145,19 +205,33 @@ class Result(eqx.Module):
         return result_to_xarray(self)
 
 
-def interval_bounds(t_end_s: float, coupling_interval_s: float) -> np.ndarray:
-    """0, every coupling interval T_g below `t_end_s`, and `t_end_s`."""
+def interval_bounds(t_end_s: float, coupling_interval_s: float, t_start_s: float = 0.0) -> np.ndarray:
+    """`t_start_s`, every multiple of the coupling interval T_g in between, `t_end_s`."""
     n = int(math.floor(t_end_s / coupling_interval_s + 1e-9))
-    ts = set(np.round(np.arange(n + 1) * coupling_interval_s, 9).tolist()) | {t_end_s}
-    return np.array(sorted(ts))
+    ts = set(np.round(np.arange(n + 1) * coupling_interval_s, 9).tolist()) | {t_end_s, t_start_s}
+    return np.array(sorted(t for t in ts if t_start_s <= t <= t_end_s))
 
 
-def save_times(t_end_s: float, coupling_interval_s: float) -> np.ndarray:
+def save_times(t_end_s: float, coupling_interval_s: float, t_start_s: float = 0.0) -> np.ndarray:
     """The interval bounds, and exactly 3 weeks if reached."""
-    ts = set(interval_bounds(t_end_s, coupling_interval_s).tolist())
-    if t_end_s >= THREE_WEEKS_S:
+    ts = set(interval_bounds(t_end_s, coupling_interval_s, t_start_s).tolist())
+    if t_start_s < THREE_WEEKS_S <= t_end_s:
         ts.add(THREE_WEEKS_S)
     return np.array(sorted(ts))
+
+
+def _growth_code(sol):
+    """`STATUS` code of a growth solve."""
+    return jnp.where(sol.result == diffrax.RESULTS.successful, 0, jnp.where(sol.result == diffrax.RESULTS.max_steps_reached, 1, 4))
+
+
+def _out_of_bounds(series: dict, params: Params):
+    """Per save time: a profile is non-finite or leaves its bounds by more than BOUNDS_TOL."""
+    o, c, m = series["profile_o"], series["profile_c"], series["profile_m"]
+    c_max = params.c_max
+    bad = ~(jnp.isfinite(o) & jnp.isfinite(c) & jnp.isfinite(m))
+    bad |= (o < -BOUNDS_TOL) | (c < -BOUNDS_TOL) | (m < -BOUNDS_TOL) | (m > 1 + BOUNDS_TOL) | (c > c_max * (1 + BOUNDS_TOL))
+    return jnp.any(bad, axis=-1) | ~jnp.isfinite(series["collagen_mg_per_g"])
 
 
 def _observe(t, y: State, args):
@@ -219,7 +293,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     coeffs = nondimensionalise(params)
     args = (params, grid)
     y0 = State.initial(coeffs, grid) if initial_state is None else initial_state
-    bounds = interval_bounds(times[-1], coupling_interval_s)
+    bounds = interval_bounds(times[-1], coupling_interval_s, times[0])
     extra = THREE_WEEKS_S in times and THREE_WEEKS_S not in bounds
     if protocol.regime == "static":
         model = GrowthModel(coeffs=coeffs, grid=grid)
@@ -227,15 +301,18 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         sol = growth_solve(model, y0, ts[0], ts[-1], ts, options, args, progress)
         series, states = sol.ys
         series["post_force_max_N"] = jnp.zeros(len(times))
+        series["surface_strain_max"] = jnp.zeros(len(times))
         final = jtu.tree_map(lambda x: x[-1], states)
-        num_steps, failed = sol.stats["num_steps"], sol.result != diffrax.RESULTS.successful
+        num_steps, code = sol.stats["num_steps"], _growth_code(sol)
+        reached = jnp.isfinite(series["collagen_mg_per_g"])
+        t_fail = jnp.max(jnp.where(reached, ts, ts[0]))
     else:
         t0s, t1s = jnp.asarray(bounds[:-1]), jnp.asarray(bounds[1:])
         tes = jnp.clip(THREE_WEEKS_S, t0s, t1s)
 
         def interval(y, k):
             t0, t1, te = t0s[k], t1s[k], tes[k]
-            _, cycle = flex_cycle(y, params, protocol, grid, beam_grid)
+            _, cycle = flex_cycle(y, params, protocol.at(t0), grid, beam_grid)
             transport = lumped_transport(cycle, params, grid, beam_grid, protocol.lumping, protocol.pins)
             model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport)
             sol = growth_solve(model, y, t0, t1, jnp.stack([te, t1]), options, args)
@@ -245,8 +322,8 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             y1 = jtu.tree_map(lambda x: x[-1], states)
             out = dict(
                 series=series, extra_state=jtu.tree_map(lambda x: x[0], states),
-                post_force=cycle.post_force_max_N, steps=sol.stats["num_steps"],
-                failed=cycle.failed | (sol.result != diffrax.RESULTS.successful),
+                post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain), steps=sol.stats["num_steps"],
+                code=jnp.where(cycle.failed, 2, _growth_code(sol)),
             )
             return y1, out
 
@@ -255,18 +332,28 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         final, out = jax.lax.scan(jax.checkpoint(interval), y0, jnp.arange(len(bounds) - 1))
         start = _observe(0.0, y0, args)
         series = {k: jnp.concatenate([start[k][None], v[:, 1]]) for k, v in out["series"].items()}
-        _, last_cycle = flex_cycle(final, params, protocol, grid, beam_grid)
+        _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
         series["post_force_max_N"] = jnp.concatenate([out["post_force"], last_cycle.post_force_max_N[None]])
-        failed = jnp.any(out["failed"]) | last_cycle.failed
+        series["surface_strain_max"] = jnp.concatenate([out["strain"], jnp.max(last_cycle.surface_strain)[None]])
+        codes = jnp.concatenate([out["code"], jnp.where(last_cycle.failed, 2, 0)[None]])
+        first = jnp.argmax(codes > 0)
+        code, t_fail = codes[first], jnp.concatenate([t0s, t1s[-1:]])[first]
         if extra:
             k3 = int(np.searchsorted(bounds, THREE_WEEKS_S)) - 1
             y3 = jtu.tree_map(lambda x: x[k3], out["extra_state"])
-            _, cycle3 = flex_cycle(y3, params, protocol, grid, beam_grid)
+            _, cycle3 = flex_cycle(y3, params, protocol.at(THREE_WEEKS_S), grid, beam_grid)
             at3 = {k: v[k3, 0] for k, v in out["series"].items()}
             at3["post_force_max_N"] = cycle3.post_force_max_N
+            at3["surface_strain_max"] = jnp.max(cycle3.surface_strain)
             series = {k: jnp.concatenate([v[: k3 + 1], at3[k][None], v[k3 + 1 :]]) for k, v in series.items()}
-            failed = failed | cycle3.failed
+            code, t_fail = jnp.where((code == 0) & cycle3.failed, 2, code), jnp.where((code == 0) & cycle3.failed, THREE_WEEKS_S, t_fail)
         num_steps = jnp.sum(out["steps"])
+    # concentrations out of bounds (where the solves themselves succeeded)
+    ts = jnp.asarray(times)
+    bad = _out_of_bounds(series, params)
+    t_bad = ts[jnp.maximum(jnp.argmax(bad) - 1, 0)]  # the last good save time
+    code, t_fail = jnp.where((code == 0) & jnp.any(bad), 3, code), jnp.where((code == 0) & jnp.any(bad), t_bad, t_fail)
+    t_reached = jnp.where(code == 0, ts[-1], t_fail)
     return Result(
         ts=tuple(times),
         **series,
@@ -274,7 +361,9 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         x_cm=grid.x_centres(coeffs.length_cm),
         y_cm=grid.y_centres(coeffs.thickness_cm),
         num_steps=num_steps,
-        failed=failed,
+        failed=code != 0,
+        status=code,
+        t_reached_s=t_reached,
         params=params,
     )
 
@@ -289,6 +378,7 @@ def simulate(
     beam: BeamGrid = BeamGrid(),
     options: SolverOptions = SolverOptions(),
     initial_state: State | None = None,
+    t_start_s: float = 0.0,
     progress: bool = False,
 ) -> Result:
     """Simulate tissue formation from seeding (t = 0) to `t_end_s` seconds.
@@ -307,6 +397,8 @@ def simulate(
     - `beam`: the beam's resolution (`BeamGrid`).
     - `options`: tolerances and step limits of the growth solves (`SolverOptions`).
     - `initial_state`: start from this `State` instead of MODEL.md §2's ICs.
+    - `t_start_s`: the time of `initial_state` (0 or a multiple of the coupling
+      interval), to continue a run from a saved state.
     - `progress`: show a progress bar.
 
     **Returns:** a `Result`. Jit-able (close over the static arguments) and
@@ -323,13 +415,19 @@ def simulate(
     u, length = concrete_value(protocol.post_displacement_mm), concrete_value(params.length_mm)
     if protocol.regime == "flex" and u is not None and length is not None and np.any(u >= length):
         raise ValueError(f"protocol post_displacement_mm = {np.ravel(u)[0]:g} must be below the strip length {np.ravel(length)[0]:g} mm")
-    times = tuple(save_times(float(t_end_s), float(coupling_interval_s)).tolist())
+    if not (isinstance(t_start_s, (int, float)) and 0 <= t_start_s < t_end_s):
+        raise ValueError(f"t_start_s = {t_start_s!r} must be in [0, t_end_s)")
+    if t_start_s and initial_state is None:
+        raise ValueError("t_start_s > 0 needs the initial_state at that time")
+    if t_start_s and abs(t_start_s / coupling_interval_s - round(t_start_s / coupling_interval_s)) > 1e-9:
+        raise ValueError(f"t_start_s = {t_start_s:g} must be a multiple of coupling_interval_s = {coupling_interval_s:g}")
+    times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
     params = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), params)
     protocol = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), protocol)
     if progress and protocol.regime == "flex":
         from tqdm.auto import tqdm
 
-        _Progress.bar = tqdm(total=len(interval_bounds(float(t_end_s), float(coupling_interval_s))) - 1, unit="interval", desc="flex culture")
+        _Progress.bar = tqdm(total=len(interval_bounds(float(t_end_s), float(coupling_interval_s), float(t_start_s))) - 1, unit="interval", desc="flex culture")
     try:
         return _simulate(params, protocol, grid, beam, (times, float(coupling_interval_s)), options, initial_state, progress)
     finally:

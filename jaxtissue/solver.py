@@ -91,7 +91,10 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        h = t1 - t0
+        # Under `vmap` a finished trajectory keeps being stepped with h = 0 and the
+        # result discarded; a safe h keeps 1/h out of it (else 0 · inf = NaN gradients).
+        active = t1 > t0
+        h = jnp.where(active, t1 - t0, 1.0)
         vf = lambda y: terms.vf(t0, y, args)  # noqa: E731  (autonomous)
         model = _vector_field(terms)
         surrogate = model.for_jacobian() if hasattr(model, "for_jacobian") else model
@@ -119,11 +122,11 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
 
         us0 = jtu.tree_map(lambda x: jnp.zeros((4,) + x.shape, x.dtype), y0)
         us, _ = jax.lax.scan(stage, us0, jnp.arange(4))
-        increment = _combine(jnp.asarray(_M_T), us)
+        increment = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(_M_T), us))
         y1 = jtu.tree_map(jnp.add, y0, increment)
-        y_error = jtu.tree_map(jnp.subtract, increment, _combine(jnp.asarray(_M_EMBEDDED_T), us))
+        y_error = jtu.tree_map(lambda a, b: jnp.where(active, a - b, 0.0), increment, _combine(jnp.asarray(_M_EMBEDDED_T), us))
         f1 = vf(y1)
-        k0 = jtu.tree_map(lambda f: h * f, f0)
-        k1 = jtu.tree_map(lambda f: h * f, f1)
+        k0 = jtu.tree_map(lambda f: (t1 - t0) * f, f0)
+        k1 = jtu.tree_map(lambda f: (t1 - t0) * f, f1)
         dense_info = dict(y0=y0, y1=y1, k0=k0, k1=k1)
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful

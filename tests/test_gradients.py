@@ -41,3 +41,17 @@ def test_fixed_steps_are_accurate():
     adaptive = jt.simulate(p, t_end_s=jt.THREE_WEEKS_S, grid=GRID, options=jt.SolverOptions(rtol=1e-9, atol=1e-12))
     fixed = three_week(p)
     np.testing.assert_allclose(np.asarray(fixed), [adaptive.collagen_mg_per_g[-1], adaptive.dna_ug_per_g[-1]], rtol=1e-5)
+
+
+def test_vmapped_gradients_equal_one_at_a_time():
+    # adaptive steps: in a batch, a finished trajectory is stepped with h = 0 (discarded);
+    # that must not turn the batch's gradients into NaN
+    def collagen(k_m0):
+        r = jt.simulate(jt.paper_parameters(k_m0=k_m0), t_end_s=2.0e5, grid=jt.Grid(ny=8))
+        return r.collagen_mg_per_g[-1]
+
+    ks = jnp.array([2.0e-7, 4.0e-7])
+    batched = jax.jit(jax.vmap(jax.grad(collagen)))(ks)
+    single = jnp.stack([jax.jit(jax.grad(collagen))(k) for k in ks])
+    assert np.all(np.isfinite(batched))
+    np.testing.assert_allclose(batched, single, rtol=1e-8)

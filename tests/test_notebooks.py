@@ -15,6 +15,7 @@ slow = pytest.mark.slow
     "01_static_culture.ipynb",
     pytest.param("02_static_vs_flex.ipynb", marks=slow),
     pytest.param("03_calibration.ipynb", marks=slow),
+    pytest.param("04_protocol_optimisation.ipynb", marks=slow),
     "05_sweeps_and_sensitivity.ipynb",
 ])
 def test_notebook_runs(name):

@@ -1,0 +1,650 @@
+"""Protocol optimisation: gradient-based design of conditioning protocols.
+
+A `Design` (from TOML, `read_design`) names an objective (`OBJECTIVES`, each a small
+function of a `Result`), bounds on the period and post displacement, limits on peak
+post force, peak surface strain or final EI (`CONSTRAINTS`), the model parameters and
+the model's resolution. The decision variables are each stage's period and post
+displacement: one stage is the paper's constant protocol, several a piecewise-constant
+schedule (`Protocol.schedule`).
+
+* Bounds by reparametrisation: θ = lo + (hi − lo) σ(z) (in log θ for the period), so
+  every iterate lies inside them.
+* Constraints g = value/limit − 1 ≤ 0 (ceilings; 1 − value/limit for floors) by an
+  augmented Lagrangian, L = f + (1/2ρ) Σ [max(0, λ + ρ g)² − λ²], with the limits
+  tightened by a small `margin`; the multipliers are updated λ ← max(0, λ + ρ g)
+  every `inner_steps`.
+* `optimize`: Adam (optax) on L with its gradient through the whole coupled run
+  (forward mode for up to 8 decision variables, reverse mode beyond), from
+  several starts at once (`vmap`): the best grid point and a Latin hypercube. Every
+  iterate is recorded; the answer is the best iterate that meets every constraint.
+* `grid_search`: the brute-force comparison, a jitted, vmapped batch over an n × n grid
+  of constant protocols within the same bounds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .calibration import ModelSettings, _settings, _table
+from .io import InputError, params_from_table, read_params_toml, read_toml
+from .params import Params, suggest
+from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, interval_bounds, simulate
+from .sweep import unit_latin_hypercube
+
+# ---------------------------------------------------------------------------------------
+# Objectives and constraints: small functions of a `Result`
+# ---------------------------------------------------------------------------------------
+
+
+def _core_fraction(result):
+    """The fraction of each mid-section cell inside the core, the middle third of the
+    thickness (|y| < h/6; exact overlap, so independent of the grid's alignment)."""
+    y = result.y_cm
+    dy = y[1] - y[0]
+    sixth = (y[-1] - y[0] + dy) / 6.0
+    return jnp.clip(jnp.minimum(y + dy / 2, sixth) - jnp.maximum(y - dy / 2, -sixth), 0.0, None) / dy
+
+
+def _core_and_periphery_m(result):
+    """Mean ECM m in the core and in the rest of the mid-section at the end."""
+    w, m = _core_fraction(result), result.profile_m[-1]
+    return jnp.sum(w * m) / jnp.sum(w), jnp.sum((1 - w) * m) / jnp.sum(1 - w)
+
+
+def total_collagen(result, dose):
+    """Collagen assay at the end of culture, mg/g ww (MODEL.md §3)."""
+    return result.collagen_mg_per_g[-1]
+
+
+def flexural_rigidity(result, dose):
+    """EI at the mid-section at the end of culture, N·m² (A.25)."""
+    return result.EI_N_m2[-1]
+
+
+def core_collagen(result, dose):
+    """Collagen in the core (middle third of the thickness at the mid-section) at the
+    end of culture, mg/g ww."""
+    return result.params.rho_m_max_mg_g * _core_and_periphery_m(result)[0]
+
+
+def core_homogeneity(result, dose):
+    """Core/periphery ratio of ECM at the mid-section at the end of culture (1 =
+    uniform; static culture leaves a poor core)."""
+    core, periphery = _core_and_periphery_m(result)
+    return core / periphery
+
+
+def least_conditioning(result, dose):
+    """The conditioning dose: Σ over coupling intervals of cycles × post displacement,
+    10⁶ mm (the paper's 1 Hz / 5 mm for 3 weeks: 9.07). Minimised, with a floor on EI."""
+    return dose
+
+
+class Objective(NamedTuple):
+    fn: Callable
+    sense: int  # +1: maximise, −1: minimise
+    label: str
+    unit: str
+
+
+OBJECTIVES = {
+    "total_collagen": Objective(total_collagen, +1, "collagen at the end of culture", "mg/g"),
+    "flexural_rigidity": Objective(flexural_rigidity, +1, "EI at the end of culture", "N m^2"),
+    "core_collagen": Objective(core_collagen, +1, "core collagen (middle third) at the end of culture", "mg/g"),
+    "core_homogeneity": Objective(core_homogeneity, +1, "core/periphery ECM ratio at the end of culture", "1"),
+    "least_conditioning": Objective(least_conditioning, -1, "conditioning dose (cycles x post displacement)", "1e6 mm"),
+}
+
+
+class Constraint(NamedTuple):
+    value: Callable  # Result -> scalar
+    kind: str  # "ceiling" (value <= limit) or "floor" (value >= limit)
+    label: str
+    unit: str
+
+
+CONSTRAINTS = {
+    "post_force_max_N": Constraint(lambda r: jnp.max(r.post_force_max_N), "ceiling", "peak post force over the culture", "N"),
+    "surface_strain_max": Constraint(lambda r: jnp.max(r.surface_strain_max), "ceiling", "peak surface fibre strain over the culture", "1"),
+    "EI_min_N_m2": Constraint(lambda r: r.EI_N_m2[-1], "floor", "EI at the end of culture", "N m^2"),
+}
+
+VARIABLES = ("period_s", "post_displacement_mm")
+DEFAULT_BOUNDS = {"period_s": (0.25, 10.0), "post_displacement_mm": (0.0, 10.0)}
+BASELINE = {"period_s": 1.0, "post_displacement_mm": 5.0}  # the paper's protocol
+
+
+def conditioning_dose(protocol: Protocol, bounds_s) -> jax.Array:
+    """Σ_k (t_k+1 − t_k)/T_k × u_k over the coupling intervals, in 10⁶ mm."""
+    t0 = jnp.asarray(bounds_s[:-1])
+    stages = [protocol.at(t) for t in np.asarray(bounds_s[:-1])]
+    per = jnp.stack([q.post_displacement_mm / q.period_s for q in stages])
+    return jnp.sum((jnp.asarray(bounds_s[1:]) - t0) * per) / 1e6
+
+
+# ---------------------------------------------------------------------------------------
+# The design problem
+# ---------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizerSettings:
+    """Multi-start Adam on the augmented Lagrangian, and the comparison grid."""
+
+    starts: int = 4
+    steps: int = 40
+    learning_rate: float = 0.15  # Adam step in the unbounded coordinates z
+    inner_steps: int = 10  # Adam steps between multiplier updates
+    penalty: float = 20.0  # ρ of the augmented Lagrangian (constraints are relative)
+    margin: float = 0.002  # the limits are tightened by this fraction inside the optimiser
+    grid_points: int = 16  # per axis of the brute-force grid (constant protocols)
+    grid_chunk: int = 64  # protocols per vmapped batch
+    seed: int = 0
+
+
+DESIGN_MODEL = ModelSettings(coupling_interval_s=2.016e5)  # 3 intervals a week: weekly stages align
+
+
+@dataclasses.dataclass(frozen=True, eq=False)  # hashed by identity: compiled functions are cached per design
+class Design:
+    objective: str
+    params: Params = Params()
+    bounds: dict = dataclasses.field(default_factory=lambda: dict(DEFAULT_BOUNDS))
+    constraints: dict = dataclasses.field(default_factory=dict)  # name -> limit
+    stages: int = 1
+    stage_length_s: float = 604800.0
+    t_end_s: float = THREE_WEEKS_S
+    hold_fraction: float = 0.05
+    lumping: str = "dispersive"
+    model: ModelSettings = DESIGN_MODEL
+    settings: OptimizerSettings = OptimizerSettings()
+    name: str = "design"
+
+    def __post_init__(self):
+        if self.objective not in OBJECTIVES:
+            raise InputError(f"objective = {self.objective!r}; {suggest(self.objective, OBJECTIVES)}")
+        for name, limit in self.constraints.items():
+            if name not in CONSTRAINTS:
+                raise InputError(f"unknown constraint {name!r}; {suggest(name, CONSTRAINTS)}")
+            if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not (math.isfinite(limit) and limit > 0):
+                raise InputError(f"constraint {name} = {limit!r} must be a positive number ({CONSTRAINTS[name].unit})")
+        if self.objective == "least_conditioning" and "EI_min_N_m2" not in self.constraints:
+            raise InputError("objective least_conditioning needs a target: [constraints] EI_min_N_m2 = VALUE (N m^2)")
+        length = float(self.params.length_mm)
+        allowed = {"period_s": (0.0, math.inf, "0 < low < high (s)"),
+                   "post_displacement_mm": (0.0, length, f"0 <= low < high < {length:g} mm (the strip length)")}
+        for name in self.bounds:
+            if name not in VARIABLES:
+                raise InputError(f"unknown bound {name!r}; {suggest(name, VARIABLES)}")
+        for name in VARIABLES:
+            lo, hi = self.bounds.get(name, DEFAULT_BOUNDS[name])
+            amin, amax, text = allowed[name]
+            ok = lo < hi and hi < amax and (lo > amin if name == "period_s" else lo >= amin)
+            if not ok:
+                raise InputError(f"bounds {name} = [{lo:g}, {hi:g}]; allowed: {text}")
+        if not (isinstance(self.stages, int) and self.stages >= 1):
+            raise InputError(f"stages = {self.stages!r} must be a positive integer")
+        if not (self.stage_length_s > 0 and self.t_end_s > 0):
+            raise InputError("stage_length_s and t_end_s must be positive numbers of seconds")
+        if self.stages > 1 and (self.stages - 1) * self.stage_length_s >= self.t_end_s:
+            raise InputError(f"stages = {self.stages} of {self.stage_length_s:g} s: the last stage would start after t_end_s = {self.t_end_s:g} s")
+        if not 0 <= self.hold_fraction < 0.25:
+            raise InputError(f"hold_fraction = {self.hold_fraction!r}; allowed: [0, 0.25)")
+
+    # ---- coordinates: θ (stages, 2) in natural units; z ∈ ℝ the optimiser's
+    def _t_bounds(self):
+        (p_lo, p_hi), (u_lo, u_hi) = (self.bounds.get(n, DEFAULT_BOUNDS[n]) for n in VARIABLES)
+        return np.array([math.log(p_lo), u_lo]), np.array([math.log(p_hi), u_hi])
+
+    def theta_from_unit(self, s):
+        """Natural values from points of the unit square (log-uniform period)."""
+        lo, hi = self._t_bounds()
+        t = lo + (hi - lo) * s
+        return jnp.stack([jnp.exp(t[..., 0]), t[..., 1]], axis=-1)
+
+    def unit_from_theta(self, theta):
+        lo, hi = self._t_bounds()
+        t = jnp.stack([jnp.log(theta[..., 0]), theta[..., 1]], axis=-1)
+        return (t - lo) / (hi - lo)
+
+    def theta_from_z(self, z):
+        return self.theta_from_unit(jax.nn.sigmoid(z))
+
+    def z_from_theta(self, theta):
+        s = jnp.clip(self.unit_from_theta(theta), 1e-6, 1 - 1e-6)
+        return jnp.log(s) - jnp.log1p(-s)
+
+    def protocol(self, theta) -> Protocol:
+        """The protocol of θ (stages, 2)."""
+        if self.stages == 1:
+            return Protocol.flex(theta[0, 0], theta[0, 1], self.hold_fraction, self.lumping)
+        return Protocol("flex", theta[:, 0], theta[:, 1], self.hold_fraction, self.lumping, "centroid", float(self.stage_length_s))
+
+    def constant(self, period_s, post_displacement_mm):
+        """θ of a constant protocol."""
+        return jnp.tile(jnp.stack([jnp.asarray(period_s, float), jnp.asarray(post_displacement_mm, float)]), (self.stages, 1))
+
+    # ---- the model
+    def evaluate(self, theta, autodiff="reverse"):
+        """(objective, constraint values in `constraints` order, failed) at θ."""
+        m = self.model
+        protocol = self.protocol(theta)
+        result = simulate(self.params, protocol, self.t_end_s, m.grid("flex"), coupling_interval_s=m.coupling_interval_s,
+                          beam=m.beam(), options=SolverOptions(rtol=m.rtol, atol=m.atol, autodiff=autodiff))
+        dose = conditioning_dose(protocol, interval_bounds(self.t_end_s, m.coupling_interval_s))
+        J = OBJECTIVES[self.objective].fn(result, dose)
+        values = jnp.stack([CONSTRAINTS[n].value(result) for n in self.constraints]) if self.constraints else jnp.zeros(0)
+        return J, values, result.failed
+
+    def violation(self, values, margin=0.0):
+        """g (relative; ≤ 0 where met) of constraint values, limits tightened by `margin`."""
+        if not self.constraints:
+            return jnp.zeros(0)
+        g = []
+        for k, (name, limit) in enumerate(self.constraints.items()):
+            if CONSTRAINTS[name].kind == "ceiling":
+                g.append(values[..., k] / (limit * (1 - margin)) - 1.0)
+            else:
+                g.append(1.0 - values[..., k] / (limit * (1 + margin)))
+        return jnp.stack(g, axis=-1)
+
+    @property
+    def autodiff(self) -> str:
+        """Forward mode for a few decision variables (cheaper to run and to compile
+        here than a reverse pass), reverse mode for many."""
+        return "forward" if 2 * self.stages <= 8 else "reverse"
+
+    def lagrangian(self, z, lam, scale):
+        """The augmented Lagrangian at z; aux = (θ, objective, constraint values, failed)."""
+        s = self.settings
+        theta = self.theta_from_z(z)
+        J, values, failed = self.evaluate(theta, self.autodiff)
+        f = -OBJECTIVES[self.objective].sense * J / scale
+        g = self.violation(values, s.margin)
+        L = f + jnp.sum(jnp.maximum(0.0, lam + s.penalty * g) ** 2 - lam**2) / (2 * s.penalty)
+        return L, (theta, J, values, failed)
+
+
+def _feasible(design: Design, values, failed, J):
+    g = np.asarray(design.violation(jnp.asarray(values)))
+    return np.all(g <= 0, axis=-1) & ~np.asarray(failed) & np.isfinite(np.asarray(J))
+
+
+def _better(design: Design, a, b):
+    """Is objective a better than b?"""
+    return OBJECTIVES[design.objective].sense * (a - b) > 0
+
+
+# ---------------------------------------------------------------------------------------
+# Brute force and gradient
+# ---------------------------------------------------------------------------------------
+
+
+class GridResult(NamedTuple):
+    periods_s: np.ndarray  # (n,)
+    displacements_mm: np.ndarray  # (n,)
+    objective: np.ndarray  # (n_period, n_displacement)
+    values: np.ndarray  # (n_period, n_displacement, constraints)
+    feasible: np.ndarray
+    best: dict | None  # {"period_s", "post_displacement_mm"} of the best feasible point
+    best_objective: float
+    seconds: float
+    compile_seconds: float
+
+
+def _compile(fn, *args):
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    return compiled, time.perf_counter() - t0
+
+
+def grid_search(design: Design, progress=None) -> GridResult:
+    """The objective on an n × n grid of constant protocols (period log-spaced), as
+    jitted vmapped batches; `progress(k)` after each batch."""
+    s = design.settings
+    n = s.grid_points
+    unit = np.linspace(0.0, 1.0, n)
+    corners = np.asarray(design.theta_from_unit(jnp.asarray(np.stack([unit, unit], axis=-1))))
+    periods, displacements = corners[:, 0], corners[:, 1]
+    P, U = np.meshgrid(periods, displacements, indexing="ij")
+    thetas = np.stack([np.broadcast_to(P.ravel()[:, None], (n * n, design.stages)),
+                       np.broadcast_to(U.ravel()[:, None], (n * n, design.stages))], axis=-1)
+    chunk = min(s.grid_chunk, n * n)
+    batch, compile_s = _compile(jax.vmap(design.evaluate), jnp.zeros((chunk, design.stages, 2)))
+    t0 = time.perf_counter()
+    J, V, F = [], [], []
+    for b in range(0, n * n, chunk):
+        part = thetas[b : b + chunk]
+        pad = chunk - len(part)
+        out = batch(jnp.asarray(np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])))
+        J.append(np.asarray(out[0])[: len(part)])
+        V.append(np.asarray(out[1])[: len(part)])
+        F.append(np.asarray(out[2])[: len(part)])
+        if progress is not None:
+            progress(len(part))
+    J, V, F = (np.concatenate(a) for a in (J, V, F))
+    seconds = time.perf_counter() - t0
+    feasible = _feasible(design, V, F, J)
+    best, best_J = None, math.nan
+    if np.any(feasible):
+        sense = OBJECTIVES[design.objective].sense
+        k = int(np.argmax(np.where(feasible, sense * J, -np.inf)))
+        best, best_J = {"period_s": float(P.ravel()[k]), "post_displacement_mm": float(U.ravel()[k])}, float(J[k])
+    return GridResult(periods, displacements, J.reshape(n, n), V.reshape(n, n, -1), feasible.reshape(n, n),
+                      best, best_J, seconds, compile_s)
+
+
+class OptimizationResult(NamedTuple):
+    path: np.ndarray  # θ per iterate and start, (steps + 1, starts, stages, 2)
+    objective: np.ndarray  # (steps + 1, starts)
+    values: np.ndarray  # (steps + 1, starts, constraints)
+    feasible: np.ndarray  # (steps + 1, starts)
+    best: np.ndarray | None  # θ (stages, 2) of the best feasible iterate
+    best_objective: float
+    best_values: np.ndarray | None
+    best_iteration: int
+    seconds: float  # after compilation
+    seconds_to_best: float
+    compile_seconds: float
+
+
+def starting_points(design: Design, first=None) -> np.ndarray:
+    """`starts` points θ: `first` (e.g. the best grid point; default the paper's
+    protocol) and a Latin hypercube over the bounds."""
+    s = design.settings
+    first = first or BASELINE
+    (p_lo, p_hi), (u_lo, u_hi) = (design.bounds.get(n, DEFAULT_BOUNDS[n]) for n in VARIABLES)
+    theta0 = np.clip(np.asarray(design.constant(first["period_s"], first["post_displacement_mm"])), [p_lo, u_lo], [p_hi, u_hi])
+    unit = unit_latin_hypercube(max(s.starts - 1, 0), 2 * design.stages, np.random.default_rng(s.seed))
+    lhs = np.asarray(design.theta_from_unit(jnp.asarray(unit.reshape(-1, design.stages, 2))))
+    return np.concatenate([np.asarray(theta0)[None], lhs])[: s.starts]
+
+
+def optimize(design: Design, starts: np.ndarray, scale: float, progress=None) -> OptimizationResult:
+    """Adam on the augmented Lagrangian from every start at once; `scale` normalises
+    the objective (e.g. the baseline's |objective|)."""
+    s = design.settings
+    schedule = optax.cosine_decay_schedule(s.learning_rate, s.steps, alpha=0.1)
+    opt = optax.apply_if_finite(optax.adam(schedule), max_consecutive_errors=s.steps)
+    if design.autodiff == "forward":
+        grad = jax.jacfwd(design.lagrangian, has_aux=True)
+    else:
+        grad = jax.grad(design.lagrangian, has_aux=True)
+
+    def step(z, state, lam):
+        dz, aux = grad(z, lam, scale)
+        updates, state = opt.update(dz, state, z)
+        return optax.apply_updates(z, updates), state, aux
+
+    n_con = len(design.constraints)
+    z = jnp.asarray(design.z_from_theta(jnp.asarray(starts)))
+    state = jax.vmap(opt.init)(z)
+    lam = jnp.zeros((len(starts), n_con))
+    batched, compile_s = _compile(jax.vmap(step), z, state, lam)
+    path, J, V, F, stamps = [], [], [], [], []
+    t0 = time.perf_counter()
+    for k in range(s.steps + 1):
+        z_new, state_new, (theta, j, values, failed) = batched(z, state, lam)
+        path.append(np.asarray(theta)), J.append(np.asarray(j)), V.append(np.asarray(values)), F.append(np.asarray(failed))
+        stamps.append(time.perf_counter() - t0)
+        z, state = z_new, state_new
+        if n_con and (k + 1) % s.inner_steps == 0:
+            lam = jnp.maximum(0.0, lam + s.penalty * design.violation(values, s.margin))
+        if progress is not None:
+            progress(1)
+    path, J, V, F = (np.stack(a) for a in (path, J, V, F))
+    feasible = _feasible(design, V, F, J)
+    best, best_J, best_V, best_k = None, math.nan, None, -1
+    if np.any(feasible):
+        sense = OBJECTIVES[design.objective].sense
+        k, i = np.unravel_index(int(np.argmax(np.where(feasible, sense * J, -np.inf))), J.shape)
+        best, best_J, best_V, best_k = path[k, i], float(J[k, i]), V[k, i], int(k)
+    return OptimizationResult(path, J, V, feasible, best, best_J, best_V, best_k, stamps[-1],
+                              stamps[best_k] if best_k >= 0 else math.nan, compile_s)
+
+
+# ---------------------------------------------------------------------------------------
+# The whole study: baseline, grid, gradient optimum, files
+# ---------------------------------------------------------------------------------------
+
+
+class InfeasibleError(InputError):
+    """No protocol within the bounds meets the constraints."""
+
+
+class Study(NamedTuple):
+    design: Design
+    baseline_objective: float
+    baseline_values: np.ndarray
+    grid: GridResult
+    optimum: OptimizationResult
+
+
+def _limits_text(design: Design, values) -> str:
+    """Each constraint's best value over `values`, e.g. 'EI_min_N_m2 <= 4.6e-07 N m^2
+    everywhere (limit 1e-05)'."""
+    return ", ".join(
+        f"{n} {'>=' if CONSTRAINTS[n].kind == 'ceiling' else '<='} {np.nanmin(v) if CONSTRAINTS[n].kind == 'ceiling' else np.nanmax(v):.4g} "
+        f"{CONSTRAINTS[n].unit} everywhere (limit {limit:g})"
+        for (n, limit), v in zip(design.constraints.items(), np.moveaxis(np.asarray(values), -1, 0))
+    )
+
+
+def run(design: Design, progress: bool = False) -> Study:
+    """Baseline (the paper's 1 Hz / 5 mm), brute-force grid, then the gradient
+    optimum from the best grid point and a Latin hypercube of starts. An
+    `InfeasibleError` if no grid point meets the limits."""
+    from tqdm.auto import tqdm
+
+    base_theta = design.constant(BASELINE["period_s"], BASELINE["post_displacement_mm"])
+    J0, V0, _ = jax.jit(design.evaluate)(base_theta)
+    with tqdm(total=design.settings.grid_points**2, desc="grid", unit="protocol", disable=not progress) as bar:
+        grid = grid_search(design, progress=bar.update)
+    if grid.best is None:
+        n = design.settings.grid_points
+        raise InfeasibleError(f"no protocol of the {n} x {n} grid over the bounds meets the limits: {_limits_text(design, grid.values)}; "
+                              "relax a limit or widen the bounds")
+    starts = starting_points(design, grid.best)
+    scale = max(abs(float(J0)), 1e-12)
+    with tqdm(total=design.settings.steps + 1, desc="optimise", unit="step", disable=not progress) as bar:
+        optimum = optimize(design, starts, scale, progress=bar.update)
+    return Study(design, float(J0), np.asarray(V0), grid, optimum)
+
+
+def optimum_protocol(study: Study) -> dict:
+    """The optimum as {"period_s", "post_displacement_mm"} or a schedule."""
+    d, theta = study.design, study.optimum.best
+    if theta is None:  # only the grid found feasible points
+        theta = np.asarray(d.constant(study.grid.best["period_s"], study.grid.best["post_displacement_mm"]))
+    if d.stages == 1:
+        return {"period_s": float(theta[0, 0]), "post_displacement_mm": float(theta[0, 1])}
+    return {"stage_length_s": d.stage_length_s, "period_s": theta[:, 0].tolist(), "post_displacement_mm": theta[:, 1].tolist()}
+
+
+def summary(study: Study) -> dict:
+    """The `summary.json` of `jaxtissue optimize`."""
+    d, g, o = study.design, study.grid, study.optimum
+    found = o.best is not None
+    objective = o.best_objective if found else g.best_objective
+    values = o.best_values if found else g.values.reshape(-1, len(d.constraints))[
+        int(np.argmax(np.where(g.feasible.ravel(), OBJECTIVES[d.objective].sense * g.objective.ravel(), -np.inf)))]
+    return {
+        "problem": d.name,
+        "objective_name": d.objective,
+        "objective_unit": OBJECTIVES[d.objective].unit,
+        "sense": "maximise" if OBJECTIVES[d.objective].sense > 0 else "minimise",
+        "optimum": optimum_protocol(study),
+        "objective": objective,
+        "baseline": dict(BASELINE),
+        "baseline_objective": study.baseline_objective,
+        "grid_best": g.best,
+        "grid_best_objective": g.best_objective,
+        "grid_points": int(g.objective.size),
+        "constraints": {
+            n: {"value": float(v), "limit": limit, "kind": CONSTRAINTS[n].kind, "unit": CONSTRAINTS[n].unit,
+                "satisfied": bool(v <= limit if CONSTRAINTS[n].kind == "ceiling" else v >= limit)}
+            for (n, limit), v in zip(d.constraints.items(), np.asarray(values))
+        },
+        "bounds": {n: list(d.bounds.get(n, DEFAULT_BOUNDS[n])) for n in VARIABLES},
+        "t_end_s": d.t_end_s,
+        "gradient_found_optimum": found,
+        "starts": o.path[0].tolist(),
+        "optimizer_steps": d.settings.steps,
+        "seconds": {
+            "gradient_to_optimum": o.seconds_to_best, "gradient_total": o.seconds, "gradient_compile": o.compile_seconds,
+            "grid_total": g.seconds, "grid_compile": g.compile_seconds,
+        },
+    }
+
+
+def report(study: Study) -> str:
+    """A Markdown report: optimum against the paper's protocol and the grid."""
+    s = summary(study)
+    d = study.design
+    obj = OBJECTIVES[d.objective]
+    sec = s["seconds"]
+    better = "better than or equal to" if not _better(d, s["grid_best_objective"], s["objective"]) else "**worse** than"
+    lines = [
+        f"# Protocol optimisation: {d.name}", "",
+        f"Objective: {s['sense']} {obj.label} ({obj.unit}) at t = {d.t_end_s:g} s; "
+        f"{'constant protocol' if d.stages == 1 else f'{d.stages} stages of {d.stage_length_s:g} s'}; bounds "
+        + ", ".join(f"{n} ∈ [{lo:g}, {hi:g}]" for n, (lo, hi) in s["bounds"].items()) + ".", "",
+        "| protocol | objective | " + " | ".join(d.constraints) + " |",
+        "|---|---|" + "---|" * len(d.constraints),
+    ]
+
+    def row(name, J, values):
+        return f"| {name} | {J:.5g} | " + " | ".join(f"{v:.4g}" for v in values) + " |"
+
+    lines.append(row("paper (1 Hz, 5 mm)", s["baseline_objective"], study.baseline_values))
+    if study.grid.best is not None:
+        k = np.unravel_index(int(np.argmax(np.where(study.grid.feasible, obj.sense * study.grid.objective, -np.inf))), study.grid.objective.shape)
+        lines.append(row(f"best of {s['grid_points']}-point grid (T = {s['grid_best']['period_s']:.3g} s, u = {s['grid_best']['post_displacement_mm']:.3g} mm)",
+                         s["grid_best_objective"], study.grid.values[k]))
+    opt = s["optimum"]
+    if d.stages == 1:
+        label = f"gradient optimum (T = {opt['period_s']:.4g} s, u = {opt['post_displacement_mm']:.4g} mm)"
+    else:
+        label = "gradient optimum (schedule: T = " + ", ".join(f"{v:.3g}" for v in opt["period_s"]) + " s; u = " + ", ".join(f"{v:.3g}" for v in opt["post_displacement_mm"]) + " mm)"
+    lines.append(row(label, s["objective"], [c["value"] for c in s["constraints"].values()]))
+    lines += ["", "Limits: " + (", ".join(f"{n} {'≤' if c['kind'] == 'ceiling' else '≥'} {c['limit']:g}{'' if c['unit'] == '1' else ' ' + c['unit']} ({'met' if c['satisfied'] else '**not met**'})"
+                                    for n, c in s["constraints"].items()) or "none") + ".", ""]
+    gain = (s["objective"] - s["baseline_objective"]) / abs(s["baseline_objective"]) if s["baseline_objective"] else math.nan
+    lines.append(f"The optimum is {better} the best grid point and changes the objective by {100 * gain:+.1f} % against the paper's protocol.")
+    if d.stages > 1:
+        lines.append(_schedule_diagnosis(study, s))
+    lines += [
+        "", "## Cost", "",
+        f"Gradient optimisation: {d.settings.starts} starts × {d.settings.steps} Adam steps, best iterate after {sec['gradient_to_optimum']:.1f} s "
+        f"({sec['gradient_total']:.1f} s in all, plus {sec['gradient_compile']:.0f} s compilation). "
+        f"Brute-force grid: {s['grid_points']} protocols in {sec['grid_total']:.1f} s (plus {sec['grid_compile']:.0f} s compilation).", "",
+        "Files: summary.json, params.toml (`jaxtissue simulate --params params.toml`), landscape.png (objective over the constant "
+        "protocols with the optimisation paths), history.png" + (", schedule.png" if d.stages > 1 else "") + ".", "",
+    ]
+    return "\n".join(lines)
+
+
+def _schedule_diagnosis(study: Study, s: dict) -> str:
+    d = study.design
+    if study.grid.best is None or not _better(d, s["objective"], s["grid_best_objective"]):
+        return ("The schedule does not beat the best constant protocol: starting from it, no feasible step of any stage "
+                "improved the objective (history.png), so within these bounds and limits the constant optimum is also "
+                "optimal stage by stage.")
+    gain = (s["objective"] - s["grid_best_objective"]) / abs(s["grid_best_objective"])
+    return f"The schedule beats the best constant protocol of the grid by {100 * gain:+.2f} % (schedule.png shows its stages)."
+
+
+def write(study: Study, folder) -> None:
+    """summary.json, params.toml, report.md and the figures into `folder`."""
+    from . import io, plots
+
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    io.write_json(folder / "summary.json", summary(study))
+    io.write_params_toml(study.design.params, folder / "params.toml")
+    io.atomic_write_text(folder / "report.md", report(study))
+    plots.protocol_landscape(study, folder / "landscape.png")
+    plots.optimisation_history(study, folder / "history.png")
+    if study.design.stages > 1:
+        plots.schedule(study, folder / "schedule.png")
+
+
+# ---------------------------------------------------------------------------------------
+# Problem files
+# ---------------------------------------------------------------------------------------
+
+_TOP = {"name", "objective", "parameters", "protocol", "bounds", "constraints", "model", "optimizer", "t_end_s"}
+_PROTOCOL = {"stages", "stage_length_s", "hold_fraction", "lumping"}
+
+
+def _number(value, where, positive=True):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (positive and value <= 0):
+        raise InputError(f"{where} = {value!r} must be a {'positive ' if positive else ''}number")
+    return float(value)
+
+
+def read_design(path, overrides: dict | None = None) -> Design:
+    """A `Design` from a TOML file (see `optimize/max_collagen.toml`); every mistake is
+    an `InputError` naming the file and the key. `overrides` replace [optimizer] keys."""
+    path = pathlib.Path(path)
+    doc, _ = read_toml(path, "optimisation problem", _TOP)
+    where = str(path)
+    objective = doc.get("objective")
+    if not isinstance(objective, str):
+        raise InputError(f"{where}: objective = \"NAME\" is required; allowed: {', '.join(OBJECTIVES)}")
+    if objective not in OBJECTIVES:
+        raise InputError(f"{where}: objective = {objective!r}; {suggest(objective, OBJECTIVES)}")
+
+    parameters = doc.get("parameters", {})
+    if isinstance(parameters, str):
+        try:
+            params = read_params_toml(path.parent / parameters)
+        except InputError as err:
+            raise InputError(f"{where}: parameters = {parameters!r}: {err}") from None
+    elif isinstance(parameters, dict):
+        params = params_from_table(parameters, f"{where} [parameters]")
+    else:
+        raise InputError(f"{where}: parameters must be a file name (\"FILE.toml\", relative to the problem file) or a table")
+
+    protocol = _table(doc, "protocol", where, _PROTOCOL)
+    stages = protocol.get("stages", 1)
+    if isinstance(stages, bool) or not isinstance(stages, int) or stages < 1:
+        raise InputError(f"{where}: [protocol] stages = {stages!r} must be a positive integer")
+    lumping = protocol.get("lumping", "dispersive")
+    if lumping not in ("dispersive", "paper"):
+        raise InputError(f"{where}: [protocol] lumping = {lumping!r}; allowed: 'dispersive', 'paper'")
+    hold = _number(protocol.get("hold_fraction", 0.05), f"{where}: [protocol] hold_fraction", positive=False)
+
+    bounds = {}
+    for name, value in _table(doc, "bounds", where, set(VARIABLES)).items():
+        if not (isinstance(value, list) and len(value) == 2):
+            raise InputError(f"{where}: [bounds] {name} = {value!r} must be [low, high]")
+        bounds[name] = tuple(_number(v, f"{where}: [bounds] {name}", positive=False) for v in value)
+    constraints = {n: _number(v, f"{where}: [constraints] {n}") for n, v in _table(doc, "constraints", where, set(CONSTRAINTS)).items()}
+
+    table = dict(_table(doc, "optimizer", where))
+    table.update(overrides or {})
+    for k, v in table.items():
+        if k == "margin" and isinstance(v, (int, float)) and not 0 <= v < 0.5:
+            raise InputError(f"{where}: [optimizer] margin = {v!r} must be in [0, 0.5)")
+    try:
+        return Design(
+            objective=objective, params=params, bounds={**DEFAULT_BOUNDS, **bounds}, constraints=constraints,
+            stages=stages, stage_length_s=_number(protocol.get("stage_length_s", 604800.0), f"{where}: [protocol] stage_length_s"),
+            t_end_s=_number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s"), hold_fraction=hold, lumping=lumping,
+            model=_settings(ModelSettings, {"coupling_interval_s": DESIGN_MODEL.coupling_interval_s, **_table(doc, "model", where)}, where, "model"),
+            settings=_settings(OptimizerSettings, table, where, "optimizer"), name=str(doc.get("name", path.stem)),
+        )
+    except InputError as err:
+        if str(err).startswith(where):
+            raise
+        raise InputError(f"{where}: {err}") from None

@@ -1,0 +1,47 @@
+"""Failing solves are detected inside the jitted run (`Result.status`), reported with the
+simulated time reached and a hint, and nothing is written as if they had succeeded."""
+
+import numpy as np
+
+import jaxtissue as jt
+from jaxtissue.beam import BeamGrid
+from jaxtissue.cli import main
+
+
+def one_error_line(capsys):
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("jaxtissue: error: ")
+    return err
+
+
+def test_step_limit_reports_time_reached_and_hint(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["simulate", "--t-end", "2e5", "--grid", "1", "8", "--max-steps", "12", "--no-progress", "--out", str(out)]) == 1
+    err = one_error_line(capsys)
+    assert "reached its step limit at t = " in err and "(of 200000 s)" in err and "raise --max-steps" in err
+    assert "Nothing was written" in err and not out.exists()
+
+
+def test_step_limit_time_reached_is_the_last_valid_save():
+    r = jt.simulate(jt.paper_parameters(), t_end_s=2e5, grid=jt.Grid(1, 8), options=jt.SolverOptions(max_steps=40))
+    assert int(r.status) == 1 and bool(r.failed)
+    k = r.ts.index(float(r.t_reached_s))
+    assert np.all(np.isfinite(r.collagen_mg_per_g[: k + 1])) and not np.all(np.isfinite(r.collagen_mg_per_g))
+
+
+def test_beam_non_convergence_is_reported(tmp_path, capsys):
+    r = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 1e5, jt.Grid(2, 8), beam=BeamGrid(8, 8))
+    assert int(r.status) == 2 and float(r.t_reached_s) == 0.0
+    assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle at t = 0 s")
+    out = tmp_path / "c"
+    assert main(["cycle", "--post-displacement", "24", "--steps", "8", "--segments", "8", "--ny", "8", "--out", str(out)]) == 1
+    assert "did not converge" in one_error_line(capsys) and not out.exists()
+
+
+def test_concentrations_out_of_bounds_are_reported():
+    # three huge fixed steps: the scheme overshoots (o < 0, c > c_max)
+    r = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8), options=jt.SolverOptions(fixed_steps=3, dt0_s=1e5))
+    assert int(r.status) == 3 and bool(r.failed)
+    assert "concentrations left their physical bounds" in r.failure_message() and "finer --grid" in r.failure_message()
+    ok = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8))
+    assert int(ok.status) == 0 and ok.failure_message() == "" and float(ok.t_reached_s) == 2e6
