@@ -68,7 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     _parameter_arguments(s)
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
     s.add_argument("--max-steps", type=_grid_size, default=4096, metavar="N", help="step limit of each growth solve (default 4096)")
-    _output_arguments(s)
+    _output_arguments(s, required=False)
+    s.add_argument("--checkpoint-every", type=_grid_size, default=None, metavar="N",
+                   help="save the state every N coupling intervals in DIR.checkpoint/ (a killed run continues with --resume DIR)")
+    s.add_argument("--resume", metavar="DIR", help="continue the interrupted --checkpoint-every run whose --out was DIR (its settings are reused)")
     s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
     s.set_defaults(func=cmd_simulate)
 
@@ -130,8 +133,8 @@ def _parameter_arguments(parser):
     parser.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
 
 
-def _output_arguments(parser):
-    parser.add_argument("--out", required=True, metavar="DIR", help="output folder (must be new or empty)")
+def _output_arguments(parser, required=True):
+    parser.add_argument("--out", required=required, metavar="DIR", help="output folder (must be new or empty)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
 
 
@@ -166,15 +169,53 @@ def load_params(args):
 
     base = read_params_toml(args.params) if args.params else None
     changes = dict(parse_assignment(text) for text in args.set)
-    return make_params(changes, base)
+    params = make_params(changes, base)
+    u = getattr(args, "post_displacement", None)
+    if u is not None and getattr(args, "regime", "flex") == "flex" and u >= params.length_mm:
+        raise InputError(f"--post-displacement = {u:g} must be below the strip length length_mm = {params.length_mm:g} mm")
+    return params
+
+
+_RUN_KEYS = ("regime", "t_end", "grid", "period", "post_displacement", "hold_fraction", "pins", "lumping", "rtol", "max_steps",
+             "checkpoint_every", "out", "overwrite")
+
+
+def _resumed_run(args):
+    """The settings of the interrupted run whose output folder is `args.resume`."""
+    import json
+    import pathlib
+
+    if args.out is not None and pathlib.Path(args.out) != pathlib.Path(args.resume):
+        raise InputError(f"--resume {args.resume} continues into that folder; drop --out {args.out}")
+    run_file = pathlib.Path(f"{args.resume}.checkpoint") / "run.json"
+    if not run_file.exists():
+        raise InputError(f"--resume {args.resume}: no interrupted run there ({run_file} missing)")
+    saved = json.loads(run_file.read_text())
+    resumed = argparse.Namespace(**{k: saved[k] for k in _RUN_KEYS}, resume=args.resume, progress=args.progress)
+    resumed.grid = tuple(resumed.grid) if resumed.grid else None
+    return resumed, saved["params"]
 
 
 def cmd_simulate(args) -> int:
+    import json
+    import pathlib
+    import shutil
+
     from . import io, plots
+    from .checkpoint import simulate_checkpointed
     from .grid import Grid
+    from .params import Params
     from .simulate import Protocol, SolverOptions, simulate
 
-    params = load_params(args)
+    if args.resume:
+        if args.checkpoint_every is not None:
+            raise InputError("--resume reuses the interrupted run's --checkpoint-every; drop it")
+        args, saved_params = _resumed_run(args)
+        params = io.make_params(saved_params, Params(), where=f"{args.resume}.checkpoint/run.json")
+    else:
+        if args.out is None:
+            raise InputError("--out DIR is required (or --resume DIR)")
+        params = load_params(args)
     protocol = Protocol.static() if args.regime == "static" else _flex_protocol(args)
     nx, ny = args.grid if args.grid else ((1, 40) if args.regime == "static" else (50, 40))
     if ny < 3:
@@ -182,10 +223,25 @@ def cmd_simulate(args) -> int:
     grid = Grid(nx=nx, ny=ny)
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
-    result = simulate(
-        params, protocol, t_end_s=args.t_end, grid=grid,
-        options=SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps), progress=progress,
-    )
+    options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps)
+    kept = pathlib.Path(f"{args.out}.checkpoint")
+    if kept.exists() and not args.resume:
+        raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
+    if args.checkpoint_every is None:
+        result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress)
+    else:
+        if not args.resume:
+            kept.mkdir(parents=True)
+            run = {k: getattr(args, k) for k in _RUN_KEYS} | {"params": params.as_dict()}
+            io.atomic_write_text(kept / "run.json", json.dumps(run, indent=1))
+        from tqdm.auto import tqdm
+
+        with tqdm(desc="segments", unit="segment", disable=not progress) as bar:
+            def tick(k, n):
+                bar.total = n
+                bar.update(1)
+
+            result = simulate_checkpointed(params, protocol, args.t_end, grid, kept, args.checkpoint_every, options=options, progress=tick)
     if bool(result.failed):
         print(f"jaxtissue: error: {result.failure_message()}. Nothing was written.", file=sys.stderr)
         return 1
@@ -195,6 +251,8 @@ def cmd_simulate(args) -> int:
         io.write_params_toml(params, tmp / "params.toml")
         plots.profiles(result, tmp / "profiles.png", title=f"{args.regime} culture")
         plots.time_series({args.regime: result}, tmp / "time_series.png")
+    if args.checkpoint_every is not None:
+        shutil.rmtree(kept, ignore_errors=True)
     print(f"wrote {args.out}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
     return 0
 
@@ -356,7 +414,17 @@ def cmd_sensitivity(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        from .params import suggest
+
+        command = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+        flags = [o for a in command._actions for o in a.option_strings if o.startswith("--")]
+        hint = suggest(unknown[0].split("=")[0], flags)
+        hint = f" ({hint})" if hint.startswith("did you mean") else f"; see jaxtissue {args.command} --help"
+        print(f"jaxtissue: error: unrecognized arguments: {' '.join(unknown)}{hint}", file=sys.stderr)
+        return 2
     try:
         return args.func(args)
     except InputError as err:

@@ -192,7 +192,7 @@ class Result(eqx.Module):
         if code == 0:
             return ""
         what, hint = STATUS[code]
-        return f"{what} at t = {float(self.t_reached_s):g} s (of {self.ts[-1]:g} s); {hint}"
+        return f"{what}; the run is valid up to t = {float(self.t_reached_s):g} s of {self.ts[-1]:g} s; {hint}"
 
     def index(self, t_s: float) -> int:
         """The index of the save time closest to `t_s`."""

@@ -18,7 +18,7 @@ def test_step_limit_reports_time_reached_and_hint(tmp_path, capsys):
     out = tmp_path / "o"
     assert main(["simulate", "--t-end", "2e5", "--grid", "1", "8", "--max-steps", "12", "--no-progress", "--out", str(out)]) == 1
     err = one_error_line(capsys)
-    assert "reached its step limit at t = " in err and "(of 200000 s)" in err and "raise --max-steps" in err
+    assert "reached its step limit; the run is valid up to t = " in err and "s of 200000 s" in err and "raise --max-steps" in err
     assert "Nothing was written" in err and not out.exists()
 
 
@@ -32,16 +32,36 @@ def test_step_limit_time_reached_is_the_last_valid_save():
 def test_beam_non_convergence_is_reported(tmp_path, capsys):
     r = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 1e5, jt.Grid(2, 8), beam=BeamGrid(8, 8))
     assert int(r.status) == 2 and float(r.t_reached_s) == 0.0
-    assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle at t = 0 s")
+    assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle; the run is valid up to t = 0 s")
     out = tmp_path / "c"
     assert main(["cycle", "--post-displacement", "24", "--steps", "8", "--segments", "8", "--ny", "8", "--out", str(out)]) == 1
     assert "did not converge" in one_error_line(capsys) and not out.exists()
 
 
-def test_concentrations_out_of_bounds_are_reported():
+def test_concentrations_out_of_bounds_are_reported(tmp_path, capsys):
     # three huge fixed steps: the scheme overshoots (o < 0, c > c_max)
     r = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8), options=jt.SolverOptions(fixed_steps=3, dt0_s=1e5))
     assert int(r.status) == 3 and bool(r.failed)
     assert "concentrations left their physical bounds" in r.failure_message() and "finer --grid" in r.failure_message()
+    out = tmp_path / "o"
+    assert main(["simulate", "--set", "k_m0=1e-3", "--rtol", "1", "--grid", "1", "8", "--no-progress", "--out", str(out)]) == 1
+    assert "concentrations left their physical bounds" in one_error_line(capsys) and not out.exists()
     ok = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8))
     assert int(ok.status) == 0 and ok.failure_message() == "" and float(ok.t_reached_s) == 2e6
+
+
+def test_input_mistakes_name_the_field_and_exit_2(tmp_path, capsys):
+    out = str(tmp_path / "o")
+    cases = [
+        (["simulate", "--regime", "flex", "--set", "length_mm=10", "--post-displacement", "12", "--out", out], "below the strip length length_mm = 10 mm"),
+        (["cycle", "--set", "length_mm=3", "--post-displacement", "5", "--out", out], "--post-displacement = 5"),
+        (["simulate", "--sett", "o_m=0.5", "--out", out], "did you mean '--set'?"),
+        (["simulate", "--set", "o_mm=0.5", "--out", out], "did you mean 'o_m'?"),
+        (["simulate", "--set", "o_m=1.5", "--out", out], "o_m = 1.5 is outside its allowed range (0, 1)"),
+        (["simulate", "--regime", "flex", "--hold-fraction", "0.3", "--out", out], "--hold-fraction = 0.3 must be in [0, 0.25)"),
+        (["simulate", "--resume", out], "no interrupted run there"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2
+        assert message in one_error_line(capsys)
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,80 @@
+"""Checkpointed runs: a simulation in segments of N coupling intervals, each finished
+segment written atomically to `FOLDER/segment_KKKK.npz` (its saved series and its final
+state), so that a killed run resumes from the last segment.
+
+A resumed run repeats exactly the computations of an uninterrupted one with the same
+segments (the same compiled segment from the same state bits), so it gives the same
+result to the last bit on the same machine. Each segment starts the growth solve afresh
+at its first time (`simulate(..., initial_state=, t_start_s=)`); every segment compiles
+once.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import jax.numpy as jnp
+import numpy as np
+
+from .growth import State
+from .io import atomic_write
+from .simulate import Result, interval_bounds, simulate
+
+SERIES = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "post_force_max_N", "surface_strain_max",
+          "profile_o", "profile_c", "profile_m")
+
+
+def segment_edges(t_end_s: float, coupling_interval_s: float, every: int) -> np.ndarray:
+    """0, every `every`-th coupling interval bound, and `t_end_s`."""
+    bounds = interval_bounds(t_end_s, coupling_interval_s)
+    return np.unique(np.concatenate([bounds[::every], bounds[-1:]]))
+
+
+def _save(path: pathlib.Path, r: Result) -> None:
+    data = {k: np.asarray(getattr(r, k)) for k in SERIES}
+    data.update(ts=np.asarray(r.ts), o=np.asarray(r.final.o), c=np.asarray(r.final.c), m=np.asarray(r.final.m),
+                num_steps=np.asarray(r.num_steps))
+    atomic_write(path, lambda f: np.savez(f, **data))
+
+
+def _load(path: pathlib.Path) -> dict:
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _combine(parts: list[dict], params, grid) -> Result:
+    """One `Result` from the segments' series (each later segment's first time, the
+    previous one's last, dropped)."""
+    cut = [p if i == 0 else {k: v[1:] for k, v in p.items() if k in SERIES + ("ts",)} for i, p in enumerate(parts)]
+    series = {k: jnp.asarray(np.concatenate([p[k] for p in cut])) for k in SERIES}
+    ts = tuple(np.concatenate([p["ts"] for p in cut]).tolist())
+    final = State(*(jnp.asarray(parts[-1][k]) for k in ("o", "c", "m")))
+    return Result(ts=ts, **series, final=final, x_cm=grid.x_centres(params.length_mm / 10.0),
+                  y_cm=grid.y_centres(params.thickness_mm / 10.0),
+                  num_steps=jnp.asarray(sum(int(p["num_steps"]) for p in parts)), failed=jnp.asarray(False),
+                  status=jnp.asarray(0), t_reached_s=jnp.asarray(ts[-1]), params=params)
+
+
+def simulate_checkpointed(params, protocol, t_end_s: float, grid, folder, every: int, *, coupling_interval_s: float = 2.0e4,
+                          progress=None, **simulate_kw) -> Result:
+    """`simulate` in segments of `every` coupling intervals, each saved in `folder`;
+    segments already there are loaded instead of solved. `progress(k, n)` after each
+    segment. A failed segment ends the run (its `Result`, which reports the failure, is
+    returned) and is not saved."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    edges = segment_edges(t_end_s, coupling_interval_s, every)
+    parts, state = [], None
+    for k in range(len(edges) - 1):
+        path = folder / f"segment_{k:04d}.npz"
+        if not path.exists():
+            r = simulate(params, protocol, float(edges[k + 1]), grid, coupling_interval_s=coupling_interval_s,
+                         initial_state=state, t_start_s=float(edges[k]), **simulate_kw)
+            if bool(r.failed):
+                return r
+            _save(path, r)
+        parts.append(_load(path))
+        state = State(*(jnp.asarray(parts[-1][n]) for n in ("o", "c", "m")))
+        if progress is not None:
+            progress(k + 1, len(edges) - 1)
+    return _combine(parts, params, grid)

@@ -1,0 +1,66 @@
+"""Checkpointed runs: a killed `jaxtissue simulate --checkpoint-every N` continues with
+`--resume DIR` and gives the same result to the last bit."""
+
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import xarray as xr
+
+import jaxtissue as jt
+from jaxtissue.checkpoint import segment_edges, simulate_checkpointed
+from jaxtissue.cli import main
+
+RUN = ["simulate", "--t-end", "1.2e5", "--grid", "1", "8", "--checkpoint-every", "1", "--no-progress"]
+
+
+def test_segment_edges():
+    np.testing.assert_array_equal(segment_edges(1.0e5, 2.0e4, 2), [0, 4e4, 8e4, 1e5])
+    np.testing.assert_array_equal(segment_edges(3.0e4, 2.0e4, 5), [0, 3e4])
+
+
+def test_segments_agree_with_one_run_to_solver_tolerance(tmp_path):
+    p, grid = jt.paper_parameters(), jt.Grid(1, 8)
+    whole = jt.simulate(p, t_end_s=1.2e5, grid=grid)
+    parts = simulate_checkpointed(p, jt.Protocol.static(), 1.2e5, grid, tmp_path / "k", 2)
+    assert parts.ts == whole.ts and len(list((tmp_path / "k").glob("segment_*.npz"))) == 3
+    np.testing.assert_allclose(parts.collagen_mg_per_g, whole.collagen_mg_per_g, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(parts.final.o, whole.final.o, rtol=1e-4)
+
+
+def test_killed_run_resumes_to_the_same_bits(tmp_path):
+    ref = tmp_path / "ref"
+    assert main(RUN + ["--out", str(ref)]) == 0
+    assert not pathlib.Path(f"{ref}.checkpoint").exists()  # removed once the results are written
+
+    out = tmp_path / "run"
+    kept = pathlib.Path(f"{out}.checkpoint")
+    cmd = [sys.executable, "-m", "jaxtissue.cli", *RUN, "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    while not (kept / "segment_0001.npz").exists():
+        assert proc.poll() is None and time.time() < deadline, "the run ended before it could be killed"
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not out.exists()
+    done = sorted(p.name for p in kept.glob("segment_*.npz"))
+    assert 2 <= len(done) < 6
+
+    assert main(["simulate", "--out", str(out)]) == 2  # a fresh run does not clobber the kept one
+    assert main(["simulate", "--resume", str(out), "--no-progress"]) == 0
+    assert not kept.exists()
+    a, b = xr.open_dataset(ref / "result.nc", engine="h5netcdf"), xr.open_dataset(out / "result.nc", engine="h5netcdf")
+    for name in a.data_vars:
+        np.testing.assert_array_equal(a[name].values, b[name].values)
+    assert a.attrs == b.attrs
+
+
+def test_resume_without_a_kept_run_is_an_error(tmp_path, capsys):
+    assert main(["simulate", "--resume", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no interrupted run there" in err
