@@ -133,3 +133,15 @@ def test_garbage_problem_files_are_one_line_errors(tmp_path, capsys, kind, body)
     assert code == 2, err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+@settings(settings.get_profile(PROFILE), max_examples=200 if LONG else 30)
+@given(body=st.text(max_size=300))
+def test_garbage_measurement_tables_are_one_line_errors(tmp_path, capsys, body):
+    (tmp_path / "data.csv").write_bytes(body.encode("utf-8", "replace"))
+    problem = tmp_path / "problem.toml"
+    problem.write_text('measurements = "data.csv"\n[parameters.free]\nk_m0 = { bounds = [1e-7, 1e-6] }\n[conditions.static]\nregime = "static"\n')
+    code = _exit_code(["calibrate", str(problem), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err and "data.csv" in err
