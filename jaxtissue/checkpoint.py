@@ -73,6 +73,7 @@ def simulate_checkpointed(params, protocol, t_end_s: float, grid, folder, every:
             if bool(r.failed):
                 return r
             _save(path, r)
+        # always continue from what is on disk: a resumed run reads the same bits
         parts.append(_load(path))
         state = State(*(jnp.asarray(parts[-1][n]) for n in ("o", "c", "m")))
         if progress is not None:
