@@ -286,8 +286,10 @@ class Beam(eqx.Module):
 
         Newton's method with the structured Jacobian (`jacobian`), iterated without
         tracing derivatives until the step is below `tol`, then one more Newton step
-        with that Jacobian held fixed: its value is the converged root, its derivative
-        the implicit-function theorem's, −J⁻¹ ∂r/∂(args, beam)."""
+        with the Jacobian at the root held fixed: its value is the converged root, its
+        derivative the implicit-function theorem's, −J⁻¹ ∂r/∂(args, beam). Only the
+        root is kept for the reverse pass (J is rebuilt from it, a few vector ops,
+        instead of storing an n × n matrix per step)."""
         if a is None:
             a = jnp.zeros_like(self.material.E)
             b = jnp.zeros_like(self.material.E)
@@ -295,19 +297,17 @@ class Beam(eqx.Module):
         frozen, frozen_args = jax.lax.stop_gradient((self, args))
 
         def body(carry):
-            k, z, _, _ = carry
-            J = frozen.jacobian(z, frozen_args)
-            dz = jnp.linalg.solve(J, frozen.residual(z, frozen_args))
-            return k + 1, z - dz, jnp.max(jnp.abs(dz)), J
+            k, z, _ = carry
+            dz = jnp.linalg.solve(frozen.jacobian(z, frozen_args), frozen.residual(z, frozen_args))
+            return k + 1, z - dz, jnp.max(jnp.abs(dz))
 
         def cond(carry):
-            k, _, step, _ = carry
+            k, _, step = carry
             return (k < max_steps) & (step > tol)
 
-        z1 = jax.lax.stop_gradient(z0)
-        init = (0, z1, jnp.inf, jnp.eye(z1.shape[0], dtype=z1.dtype))
-        _, z, step, J = jax.lax.while_loop(cond, body, init)
-        z, step, J = checkpoint_name((z, step, J), "beam_newton")  # kept, not re-solved, by remat
+        _, z, step = jax.lax.while_loop(cond, body, (0, jax.lax.stop_gradient(z0), jnp.inf))
+        z, step = checkpoint_name((z, step), "beam_newton")  # kept, not re-solved, by remat
+        J = frozen.jacobian(z, frozen_args)
         z = z - jnp.linalg.solve(J, self.residual(z, args))
         return z, step <= tol
 

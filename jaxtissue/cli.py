@@ -367,6 +367,7 @@ def cmd_sweep(args) -> int:
 
     from . import io, sweep
 
+    sweep.use_all_cores()  # before anything starts JAX's backend
     definition = sweep.read_sweep(args.sweep)
     out = pathlib.Path(args.out)
     if args.resume and args.overwrite:

@@ -8,7 +8,9 @@ only pointwise, so:
    a 5-point stencil share one) instead of one JVP per unknown.
 2. **Eliminate** c and m pointwise (a Schur complement): what is left is a 5-point
    operator on o alone.
-3. **Solve** it: one batched tridiagonal solve per column in 1-D (`nx = 1`); in 2-D a
+3. **Solve** it: in 1-D (`nx = 1`) the Thomas algorithm, factored once per step and
+   reused by every stage (a `lax.scan` along y: under `vmap` each row is one vector
+   operation over the batch, 3× faster than batched LAPACK `gtsv`); in 2-D a
    block-tridiagonal (block Thomas) elimination along x with ny × ny blocks.
 
 The approximation `J̃` kept here drops the O2-diffusivity's dependence on m and the
@@ -130,7 +132,7 @@ class FivePoint(eqx.Module):
     def factor(self) -> "FivePointFactor":
         nx = self.diag.shape[0]
         if nx == 1:
-            return FivePointFactor(op=self, block_inverses=None)
+            return FivePointFactor(op=self, block_inverses=None, thomas=_thomas_factor(self.south, self.diag, self.north))
         blocks = jax.vmap(_tridiagonal_matrix)(self.south, self.diag, self.north)
 
         def eliminate(prev_inv, inputs):
@@ -143,23 +145,58 @@ class FivePoint(eqx.Module):
         return FivePointFactor(op=self, block_inverses=invs)
 
 
+def _thomas_factor(sub, diag, sup):
+    """Thomas elimination of the tridiagonal rows along the last axis: (1/pivot, c'),
+    both with y leading (a `lax.scan` over rows)."""
+    rows = lambda x: jnp.moveaxis(x, -1, 0)  # noqa: E731
+
+    def eliminate(c_prev, row):
+        lower, d, upper = row
+        inv = 1.0 / (d - lower * c_prev)
+        return upper * inv, (inv, upper * inv)
+
+    lower = sub.at[..., 0].set(0.0)
+    upper = sup.at[..., -1].set(0.0)
+    _, (inv, c) = jax.lax.scan(eliminate, jnp.zeros_like(diag[..., 0]), (rows(lower), rows(diag), rows(upper)))
+    return rows(lower), inv, c
+
+
+def _thomas_solve(factor, r):
+    lower, inv, c = factor
+
+    def forward(z_prev, row):
+        ri, li, ii = row
+        z = (ri - li * z_prev) * ii
+        return z, z
+
+    rr = jnp.moveaxis(r, -1, 0)
+    _, z = jax.lax.scan(forward, jnp.zeros_like(rr[0]), (rr, lower, inv))
+
+    def backward(x_next, row):
+        zi, ci = row
+        x = zi - ci * x_next
+        return x, x
+
+    _, x = jax.lax.scan(backward, jnp.zeros_like(rr[0]), (z, c), reverse=True)
+    return jnp.moveaxis(x, 0, -1)
+
+
 def _tridiagonal_matrix(sub, diag, sup):
     n = diag.shape[0]
     return jnp.diag(diag) + jnp.diag(sub[1:], -1) + jnp.diag(sup[:-1], 1)
 
 
 class FivePointFactor(eqx.Module):
-    """A factored `FivePoint` operator: tridiagonal (1-D) or block-Thomas inverses (2-D)."""
+    """A factored `FivePoint` operator: Thomas factors (1-D) or block-Thomas inverses (2-D)."""
 
     op: FivePoint
     block_inverses: jax.Array | None
+    thomas: tuple | None = None
 
     def solve(self, r: Field) -> Field:
         op = self.op
         if self.block_inverses is None:
-            dl = op.south.at[:, 0].set(0.0)
-            du = op.north.at[:, -1].set(0.0)
-            return jax.lax.linalg.tridiagonal_solve(dl, op.diag, du, r[..., None])[..., 0]
+            return _thomas_solve(self.thomas, r)
         invs = self.block_inverses
 
         def forward(z_prev, inputs):

@@ -5,7 +5,8 @@ A `Sweep` (from TOML, `read_sweep`) is a design of parameter sets: a full grid
 or `"sobol"`, `samples = N`, a `range` and `transform` per name). `run` evaluates it in
 chunks: one jitted, `vmap`ped simulation per chunk, its batch axis sharded over every
 device of `jax.devices()` (`jax.sharding`; on several hosts after
-`jax.distributed.initialize()`, the same call spans them all). Each finished chunk is
+`jax.distributed.initialize()`, the same call spans them all; `jaxtissue sweep` first
+splits a CPU into one device per core, `use_all_cores`). Each finished chunk is
 written atomically to `DIR/chunks/`; `resume=True` skips those already there, so an
 interrupted sweep resumes and ends with the same `DIR/sweep.nc`.
 
@@ -74,7 +75,8 @@ class Sweep:
     def run_one(self, values) -> dict:
         params, protocol = self.model(values)
         r = simulate(params, protocol, self.t_end_s, self.grid, coupling_interval_s=self.coupling_interval_s,
-                     beam=self.beam, options=SolverOptions(rtol=self.rtol, atol=self.rtol * 1e-3, max_steps=self.max_steps))
+                     beam=self.beam, options=SolverOptions(rtol=self.rtol, atol=self.rtol * 1e-3, max_steps=self.max_steps),
+                     save="end" if self.outputs == "final" else "intervals")
         pick = (lambda v: v[-1]) if self.outputs == "final" else (lambda v: v)
         out = {k: pick(getattr(r, k)) for k in OUTPUTS}
         out["failed"] = r.failed
@@ -248,6 +250,23 @@ def read_sweep(path) -> Sweep:
 # ---------------------------------------------------------------------------------------
 # Execution
 # ---------------------------------------------------------------------------------------
+
+
+def use_all_cores() -> bool:
+    """Give JAX one CPU device per core (`--xla_force_host_platform_device_count`), so
+    that a sweep's batch is sharded over every core of a CPU-only machine. Works only
+    before JAX starts its backends and leaves an explicit device count in `XLA_FLAGS`
+    alone; accelerators are unaffected. Returns whether the setting was made."""
+    import os
+
+    from jax._src import xla_bridge
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    cores = os.cpu_count() or 1
+    if cores < 2 or "xla_force_host_platform_device_count" in flags or xla_bridge.backends_are_initialized():
+        return False
+    os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={cores}".strip()
+    return True
 
 
 def batched(sweep: Sweep):

@@ -27,6 +27,8 @@ def test_step_limit_time_reached_is_the_last_valid_save():
     assert int(r.status) == 1 and bool(r.failed)
     k = r.ts.index(float(r.t_reached_s))
     assert np.all(np.isfinite(r.collagen_mg_per_g[: k + 1])) and not np.all(np.isfinite(r.collagen_mg_per_g))
+    end = jt.simulate(jt.paper_parameters(), t_end_s=2e5, grid=jt.Grid(1, 8), options=jt.SolverOptions(max_steps=40), save="end")
+    assert int(end.status) == 1 and float(end.t_reached_s) == 0.0  # nothing saved before the end: valid only at the start
 
 
 def test_beam_non_convergence_is_reported(tmp_path, capsys):
