@@ -17,11 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .growth import State
-from .io import atomic_write
+from .io import SERIES, atomic_write
 from .simulate import Result, interval_bounds, simulate
-
-SERIES = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "post_force_max_N", "surface_strain_max",
-          "profile_o", "profile_c", "profile_m")
 
 
 def segment_edges(t_end_s: float, coupling_interval_s: float, every: int) -> np.ndarray:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import pathlib
 import shutil
@@ -24,10 +25,15 @@ UNITS = {
     "profile_o": ("1", "O2 o = rho_o/(5 rho_o,ext) at the mid-section"),
     "profile_c": ("1", "cell density c = rho_c/rho_c,seed at the mid-section"),
     "profile_m": ("1", "ECM m = rho_m/rho_m,max at the mid-section"),
+    # the final 2-D fields (`Result.final`); every name above is a time series
     "o": ("1", "final O2 field"),
     "c": ("1", "final cell-density field"),
     "m": ("1", "final ECM field"),
 }
+
+
+SERIES = tuple(k for k in UNITS if k not in ("o", "c", "m"))
+"""The `Result` fields with a leading time axis (scalars per time, then profiles)."""
 
 
 class InputError(ValueError):
@@ -38,11 +44,10 @@ def result_to_xarray(result):
     """The `Result` as an `xarray.Dataset`; units and the parameters in attributes."""
     import xarray as xr
 
-    series = {k: ("time_s", np.asarray(getattr(result, k))) for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "post_force_max_N", "surface_strain_max")}
-    profiles = {k: (("time_s", "y_cm"), np.asarray(getattr(result, k))) for k in ("profile_o", "profile_c", "profile_m")}
+    series = {k: (("time_s", "y_cm")[: np.ndim(getattr(result, k))], np.asarray(getattr(result, k))) for k in SERIES}
     fields = {k: (("x_cm", "y_cm"), np.asarray(getattr(result.final, k))) for k in ("o", "c", "m")}
     ds = xr.Dataset(
-        {**series, **profiles, **fields},
+        {**series, **fields},
         coords=dict(time_s=np.asarray(result.ts), x_cm=np.asarray(result.x_cm), y_cm=np.asarray(result.y_cm)),
     )
     for name, (unit, doc) in UNITS.items():
@@ -104,6 +109,14 @@ def read_params_toml(path, base: Params | None = None) -> Params:
     if not isinstance(table, dict):
         raise InputError(f"{path}: [parameters] must be a table of name = value")
     return params_from_table(table, str(path), base)
+
+
+def number(value, where: str, positive: bool = False) -> float:
+    """A finite (`positive`: and > 0) number from a TOML value, else an `InputError`
+    naming `where`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (positive and value <= 0):
+        raise InputError(f"{where} = {value!r} must be a {'positive' if positive else 'finite'} number")
+    return float(value)
 
 
 def params_from_table(table: dict, where: str, base: Params | None = None) -> Params:

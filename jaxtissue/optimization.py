@@ -35,7 +35,7 @@ import numpy as np
 import optax
 
 from .calibration import ModelSettings, _settings, _table
-from .io import InputError, params_from_table, read_params_toml, read_toml
+from .io import InputError, number, params_from_table, read_params_toml, read_toml
 from .params import Params, suggest
 from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, interval_bounds, simulate
 from .sweep import unit_latin_hypercube
@@ -227,7 +227,7 @@ class Design:
         """The protocol of θ (stages, 2)."""
         if self.stages == 1:
             return Protocol.flex(theta[0, 0], theta[0, 1], self.hold_fraction, self.lumping)
-        return Protocol("flex", theta[:, 0], theta[:, 1], self.hold_fraction, self.lumping, "centroid", float(self.stage_length_s))
+        return Protocol.schedule(theta[:, 0], theta[:, 1], self.stage_length_s, self.hold_fraction, self.lumping)
 
     def constant(self, period_s, post_displacement_mm):
         """θ of a constant protocol."""
@@ -297,6 +297,7 @@ class GridResult(NamedTuple):
     feasible: np.ndarray
     best: dict | None  # {"period_s", "post_displacement_mm"} of the best feasible point
     best_objective: float
+    best_values: np.ndarray | None  # the constraint values there
     seconds: float
     compile_seconds: float
 
@@ -334,13 +335,13 @@ def grid_search(design: Design, progress=None) -> GridResult:
     J, V, F = (np.concatenate(a) for a in (J, V, F))
     seconds = time.perf_counter() - t0
     feasible = _feasible(design, V, F, J)
-    best, best_J = None, math.nan
+    best, best_J, best_V = None, math.nan, None
     if np.any(feasible):
         sense = OBJECTIVES[design.objective].sense
         k = int(np.argmax(np.where(feasible, sense * J, -np.inf)))
-        best, best_J = {"period_s": float(P.ravel()[k]), "post_displacement_mm": float(U.ravel()[k])}, float(J[k])
+        best, best_J, best_V = {"period_s": float(P.ravel()[k]), "post_displacement_mm": float(U.ravel()[k])}, float(J[k]), V[k]
     return GridResult(periods, displacements, J.reshape(n, n), V.reshape(n, n, -1), feasible.reshape(n, n),
-                      best, best_J, seconds, compile_s)
+                      best, best_J, best_V, seconds, compile_s)
 
 
 class OptimizationResult(NamedTuple):
@@ -475,8 +476,7 @@ def summary(study: Study) -> dict:
     d, g, o = study.design, study.grid, study.optimum
     found = o.best is not None
     objective = o.best_objective if found else g.best_objective
-    values = o.best_values if found else g.values.reshape(-1, len(d.constraints))[
-        int(np.argmax(np.where(g.feasible.ravel(), OBJECTIVES[d.objective].sense * g.objective.ravel(), -np.inf)))]
+    values = o.best_values if found else g.best_values
     return {
         "problem": d.name,
         "objective_name": d.objective,
@@ -527,9 +527,8 @@ def report(study: Study) -> str:
 
     lines.append(row("paper (1 Hz, 5 mm)", s["baseline_objective"], study.baseline_values))
     if study.grid.best is not None:
-        k = np.unravel_index(int(np.argmax(np.where(study.grid.feasible, obj.sense * study.grid.objective, -np.inf))), study.grid.objective.shape)
         lines.append(row(f"best of {s['grid_points']}-point grid (T = {s['grid_best']['period_s']:.3g} s, u = {s['grid_best']['post_displacement_mm']:.3g} mm)",
-                         s["grid_best_objective"], study.grid.values[k]))
+                         s["grid_best_objective"], study.grid.best_values))
     opt = s["optimum"]
     if d.stages == 1:
         label = f"gradient optimum (T = {opt['period_s']:.4g} s, u = {opt['post_displacement_mm']:.4g} mm)"
@@ -586,12 +585,6 @@ _TOP = {"name", "objective", "parameters", "protocol", "bounds", "constraints", 
 _PROTOCOL = {"stages", "stage_length_s", "hold_fraction", "lumping"}
 
 
-def _number(value, where, positive=True):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (positive and value <= 0):
-        raise InputError(f"{where} = {value!r} must be a {'positive ' if positive else ''}number")
-    return float(value)
-
-
 def read_design(path, overrides: dict | None = None) -> Design:
     """A `Design` from a TOML file (see `optimize/max_collagen.toml`); every mistake is
     an `InputError` naming the file and the key. `overrides` replace [optimizer] keys."""
@@ -622,14 +615,14 @@ def read_design(path, overrides: dict | None = None) -> Design:
     lumping = protocol.get("lumping", "dispersive")
     if lumping not in ("dispersive", "paper"):
         raise InputError(f"{where}: [protocol] lumping = {lumping!r}; allowed: 'dispersive', 'paper'")
-    hold = _number(protocol.get("hold_fraction", 0.05), f"{where}: [protocol] hold_fraction", positive=False)
+    hold = number(protocol.get("hold_fraction", 0.05), f"{where}: [protocol] hold_fraction")
 
     bounds = {}
     for name, value in _table(doc, "bounds", where, set(VARIABLES)).items():
         if not (isinstance(value, list) and len(value) == 2):
             raise InputError(f"{where}: [bounds] {name} = {value!r} must be [low, high]")
-        bounds[name] = tuple(_number(v, f"{where}: [bounds] {name}", positive=False) for v in value)
-    constraints = {n: _number(v, f"{where}: [constraints] {n}") for n, v in _table(doc, "constraints", where, set(CONSTRAINTS)).items()}
+        bounds[name] = tuple(number(v, f"{where}: [bounds] {name}") for v in value)
+    constraints = {n: number(v, f"{where}: [constraints] {n}", positive=True) for n, v in _table(doc, "constraints", where, set(CONSTRAINTS)).items()}
 
     table = dict(_table(doc, "optimizer", where))
     table.update(overrides or {})
@@ -639,8 +632,8 @@ def read_design(path, overrides: dict | None = None) -> Design:
     try:
         return Design(
             objective=objective, params=params, bounds={**DEFAULT_BOUNDS, **bounds}, constraints=constraints,
-            stages=stages, stage_length_s=_number(protocol.get("stage_length_s", 604800.0), f"{where}: [protocol] stage_length_s"),
-            t_end_s=_number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s"), hold_fraction=hold, lumping=lumping,
+            stages=stages, stage_length_s=number(protocol.get("stage_length_s", 604800.0), f"{where}: [protocol] stage_length_s", positive=True),
+            t_end_s=number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s", positive=True), hold_fraction=hold, lumping=lumping,
             model=_settings(ModelSettings, {"coupling_interval_s": DESIGN_MODEL.coupling_interval_s, **_table(doc, "model", where)}, where, "model"),
             settings=_settings(OptimizerSettings, table, where, "optimizer"), name=str(doc.get("name", path.stem)),
         )

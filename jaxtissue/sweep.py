@@ -30,7 +30,7 @@ import numpy as np
 from .beam import BeamGrid
 from .data import QUANTITIES
 from .grid import Grid
-from .io import InputError, atomic_write, atomic_write_text, params_from_table, read_toml, write_netcdf
+from .io import InputError, atomic_write, number, atomic_write_text, params_from_table, read_toml, write_netcdf
 from .params import FIELDS, Params, suggest
 from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, save_times, simulate
 
@@ -93,12 +93,6 @@ class Sweep:
 _TOP = {"regime", "t_end_s", "design", "samples", "seed", "outputs", "chunk", "parameters", "protocol", "fixed", "model"}
 
 
-def _number(value, where):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(f"{where} = {value!r} must be a finite number")
-    return float(value)
-
-
 def _check_value(name, value, where):
     """A swept value inside its allowed range (the protocol's own checks for its fields)."""
     if name in FIELDS:
@@ -123,11 +117,11 @@ def _axis(name, spec, where):
         values = spec["values"]
         if not isinstance(values, list) or not values:
             raise InputError(f"{where}: {name} values must be a non-empty list")
-        return np.array([_number(v, f"{where}: {name} value") for v in values])
+        return np.array([number(v, f"{where}: {name} value") for v in values])
     ends, n = spec[kind], spec.get("n")
     if not (isinstance(ends, list) and len(ends) == 2):
         raise InputError(f"{where}: {name} {kind} = {ends!r} must be [first, last]")
-    a, b = (_number(v, f"{where}: {name} {kind} end") for v in ends)
+    a, b = (number(v, f"{where}: {name} {kind} end") for v in ends)
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise InputError(f"{where}: {name} n = {n!r} must be a positive integer")
     if kind == "logspace":
@@ -148,7 +142,7 @@ def _space_filling(names, specs, design, samples, seed, where):
         spec = specs[name]
         if not isinstance(spec, dict) or set(spec) - {"range", "transform"} or "range" not in spec:
             raise InputError(f"{where}: with design = {design!r}, {name} must be {{ range = [low, high], transform = \"log\" | \"linear\" }}")
-        a, b = (_number(v, f"{where}: {name} range end") for v in spec["range"])
+        a, b = (number(v, f"{where}: {name} range end") for v in spec["range"])
         transform = spec.get("transform", "linear")
         if transform not in ("log", "linear"):
             raise InputError(f"{where}: {name} transform = {transform!r}; allowed: 'log', 'linear'")
@@ -176,7 +170,7 @@ def read_sweep(path) -> Sweep:
     regime = doc.get("regime", "static")
     if regime not in ("static", "flex"):
         raise InputError(f"{where}: regime = {regime!r}; allowed: 'static', 'flex'")
-    t_end = _number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s")
+    t_end = number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s")
     if t_end <= 0:
         raise InputError(f"{where}: t_end_s = {t_end:g} must be > 0 s")
     outputs = doc.get("outputs", "final")
@@ -239,8 +233,8 @@ def read_sweep(path) -> Sweep:
         beam = BeamGrid(n_segments=model.get("beam_segments", 50), steps_per_cycle=model.get("beam_steps_per_cycle", 200))
     except (TypeError, ValueError) as err:
         raise InputError(f"{where}: [model] {err}") from None
-    interval = _number(model.get("coupling_interval_s", 2.0e4), f"{where}: [model] coupling_interval_s")
-    rtol = _number(model.get("rtol", 1e-5), f"{where}: [model] rtol")
+    interval = number(model.get("coupling_interval_s", 2.0e4), f"{where}: [model] coupling_interval_s")
+    rtol = number(model.get("rtol", 1e-5), f"{where}: [model] rtol")
     max_steps = model.get("max_steps", 4096)
     if interval <= 0 or not 0 < rtol < 1 or isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
         raise InputError(f"{where}: [model] needs coupling_interval_s > 0, rtol in (0, 1), max_steps a positive integer")
@@ -310,13 +304,14 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     else:
         atomic_write_text(manifest, json.dumps(stamp))
     fn, n_dev = batched(sweep)
-    width = -(-sweep.chunk // n_dev) * n_dev  # a multiple of the device count
+    width = sweep.chunk  # the chunk files do not depend on the device count ...
+    batch = -(-width // n_dev) * n_dev  # ... the batch is padded to a multiple of it
     starts = range(0, sweep.size, width)
     todo = [s for s in starts if not (resume and (chunks / f"{s:08d}.npz").exists())]
     with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not progress) as bar:
         for s in todo:
             values = sweep.points[s : s + width]
-            pad = width - values.shape[0]
+            pad = batch - values.shape[0]
             result = fn(np.concatenate([values, np.repeat(values[-1:], pad, axis=0)]))
             result = {k: v[: values.shape[0]] for k, v in result.items()}
             atomic_write(chunks / f"{s:08d}.npz", lambda f, result=result: np.savez(f, **result))

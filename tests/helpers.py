@@ -19,3 +19,13 @@ def frozen_cells(**changes):
     import jaxtissue as jt
 
     return jt.paper_parameters(k_c_max=0.0, k_a=0.0, k_m0=0.0, **changes)
+
+
+TINY_MODEL = """[model]
+ny = 8
+flex_nx = 2
+beam_segments = 8
+beam_steps_per_cycle = 24
+coupling_interval_s = 604800.0
+"""
+"""The [model] table of the small flex problems of the calibration and optimisation tests."""

@@ -14,6 +14,8 @@ from jaxtissue.cli import main
 from jaxtissue.data import ENGELMAYR, DataError, read_measurements
 from jaxtissue.io import InputError, read_params_toml
 
+from helpers import TINY_MODEL
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 WEEK = 604800.0
 HEADER = "observableId,simulationConditionId,time,measurement,noiseParameters,unit,source\n"
@@ -22,16 +24,7 @@ TRUTH = dict(lumping_C=0.3, k_c_max=1.3e-5, k_a=0.9e-5, k_m0=2.0e-7, E_m0_kPa_pe
 BOUNDS = dict(lumping_C=(0.05, 2.0), k_c_max=(0.6e-5, 2.5e-5), k_a=(0.3e-5, 2.0e-5), k_m0=(5e-8, 1e-6), E_m0_kPa_per_ug_g=(0.2, 5.0))
 STARTS = dict(lumping_C=0.4, k_c_max=1.15e-5, k_a=1.05e-5, k_m0=1.7e-7, E_m0_kPa_per_ug_g=1.0)  # 10-30 % off
 
-MODEL = """
-[model]
-ny = 8
-flex_nx = 2
-beam_segments = 8
-beam_steps_per_cycle = 24
-coupling_interval_s = 604800.0
-rtol = 1e-8
-atol = 1e-11
-"""
+MODEL = "\n" + TINY_MODEL + "rtol = 1e-8\natol = 1e-11\n"
 
 
 def problem_toml(folder, csv_name, free, regimes=("static", "flex"), fit="starts = 1\nmax_steps = 40\nprofile_points = 2"):

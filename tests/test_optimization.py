@@ -17,17 +17,12 @@ from jaxtissue.cli import main
 from jaxtissue.io import read_params_toml
 from jaxtissue.simulate import interval_bounds
 
+from helpers import TINY_MODEL
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 WEEK = 604800.0
 TINY = ModelSettings(ny=8, flex_nx=2, beam_segments=8, beam_steps_per_cycle=24, coupling_interval_s=WEEK, rtol=1e-8, atol=1e-11)
-TINY_TOML = """
-[model]
-ny = 8
-flex_nx = 2
-beam_segments = 8
-beam_steps_per_cycle = 24
-coupling_interval_s = 604800.0
-"""
+TINY_TOML = "\n" + TINY_MODEL
 
 
 def tiny_run(protocol):
