@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
+from .linsolve import thomas_factor, thomas_solve
 from .params import Params
 
 GAMMA_W_PA_PER_M = 1000.0 * 9.81  # ρ_f g of the culture medium (MODEL.md §4)
@@ -142,11 +143,6 @@ def _consolidation_operator(mat: Material, dy, dt):
     sub = jnp.where(jnp.arange(K.shape[1]) == 0, 0.0, -c * lower)
     sup = jnp.where(jnp.arange(K.shape[1]) == K.shape[1] - 1, 0.0, -c * upper)
     return sub, 1 + c * (lower + upper), sup
-
-
-def _tridiag_solve(op, rhs):
-    sub, diag, sup = op
-    return jax.lax.linalg.tridiagonal_solve(sub, diag, sup, rhs[..., None])[..., 0]
 
 
 _GAUSS = (0.5 - 0.5 / 3**0.5, 0.5 + 0.5 / 3**0.5)
@@ -386,19 +382,19 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     dt = period_s / n
     geo, mat = beam.geometry, beam.material
     y = geo.y_cells(beam.ny)
-    op = _consolidation_operator(mat, geo.thickness / beam.ny, dt)
+    op = thomas_factor(*_consolidation_operator(mat, geo.thickness / beam.ny, dt))  # once per cycle
     drive = 2 * mat.mu * y  # p gains drive · Δκ
-    b = _tridiag_solve(op, drive)
+    b = thomas_solve(op, drive)
     kappa0 = beam.curvature(beam.natural_angles())
     mid = beam.grid.n_segments // 2
 
     last = n * (cycles - 1)  # the reported cycle's first step
 
     def step(carry, k):
-        z, p, kappa, sums = carry
+        z, z_prev, p, kappa, sums = carry
         u = waveform((k + 1) * dt, period_s, u_max_m, hold_fraction)
-        a = _tridiag_solve(op, p - kappa[:, None] * drive)
-        z_new, converged = beam.equilibrium(u, z, a, b)
+        a = thomas_solve(op, p - kappa[:, None] * drive)
+        z_new, converged = beam.equilibrium(u, 2 * z - z_prev, a, b)  # Newton from the linear extrapolation
         kappa_new = beam.curvature(z_new[:-1])
         p_new = a + kappa_new[:, None] * b
         vx, vy = _seepage(beam, p_new)
@@ -414,12 +410,12 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
         )
         if keep_fields:
             out["theta"], out["p"], out["vy"] = z_new[:-1], p_new, vy
-        return (z_new, p_new, kappa_new, sums), out
+        return (z_new, z, p_new, kappa_new, sums), out
 
     z0 = beam.rest_state()
     zeros = jnp.zeros_like(mat.E)
-    init = (z0, zeros, kappa0, dict(vx=zeros, vy=zeros, abs_vy=zeros))
-    (_, _, _, sums), hist = nested_checkpoint_scan(step, init, n * cycles)
+    init = (z0, z0, zeros, kappa0, dict(vx=zeros, vy=zeros, abs_vy=zeros))
+    (_, _, _, _, sums), hist = nested_checkpoint_scan(step, init, n * cycles)
     hist = jax.tree_util.tree_map(lambda h: h[-n:], hist)
     zero = jnp.zeros(1)
     _, y_rest = beam.shape(z0)

@@ -132,7 +132,7 @@ class FivePoint(eqx.Module):
     def factor(self) -> "FivePointFactor":
         nx = self.diag.shape[0]
         if nx == 1:
-            return FivePointFactor(op=self, block_inverses=None, thomas=_thomas_factor(self.south, self.diag, self.north))
+            return FivePointFactor(op=self, block_inverses=None, thomas=thomas_factor(self.south, self.diag, self.north))
         blocks = jax.vmap(_tridiagonal_matrix)(self.south, self.diag, self.north)
 
         def eliminate(prev_inv, inputs):
@@ -145,9 +145,11 @@ class FivePoint(eqx.Module):
         return FivePointFactor(op=self, block_inverses=invs)
 
 
-def _thomas_factor(sub, diag, sup):
-    """Thomas elimination of the tridiagonal rows along the last axis: (1/pivot, c'),
-    both with y leading (a `lax.scan` over rows)."""
+def thomas_factor(sub, diag, sup):
+    """Thomas elimination of tridiagonal systems along the last axis (`sub[..., 0]` and
+    `sup[..., -1]` are ignored), for `thomas_solve`: a `lax.scan` over the rows, each
+    row one vector operation over the leading axes (no pivoting: for diagonally
+    dominant operators)."""
     rows = lambda x: jnp.moveaxis(x, -1, 0)  # noqa: E731
 
     def eliminate(c_prev, row):
@@ -155,13 +157,15 @@ def _thomas_factor(sub, diag, sup):
         inv = 1.0 / (d - lower * c_prev)
         return upper * inv, (inv, upper * inv)
 
-    lower = sub.at[..., 0].set(0.0)
-    upper = sup.at[..., -1].set(0.0)
+    lower = jnp.asarray(sub).at[..., 0].set(0.0)
+    upper = jnp.asarray(sup).at[..., -1].set(0.0)
+    diag = jnp.asarray(diag)
     _, (inv, c) = jax.lax.scan(eliminate, jnp.zeros_like(diag[..., 0]), (rows(lower), rows(diag), rows(upper)))
     return rows(lower), inv, c
 
 
-def _thomas_solve(factor, r):
+def thomas_solve(factor, r):
+    """Solve the factored systems for right-hand sides `r` (same shape as `diag`)."""
     lower, inv, c = factor
 
     def forward(z_prev, row):
@@ -196,7 +200,7 @@ class FivePointFactor(eqx.Module):
     def solve(self, r: Field) -> Field:
         op = self.op
         if self.block_inverses is None:
-            return _thomas_solve(self.thomas, r)
+            return thomas_solve(self.thomas, r)
         invs = self.block_inverses
 
         def forward(z_prev, inputs):

@@ -1,12 +1,15 @@
-"""The ROS34PW2 integrator: observed temporal order and agreement with diffrax's Kvaerno5."""
+"""The ROS34PW2 integrator: observed temporal order and agreement with diffrax's Kvaerno5;
+its structured linear algebra against dense solves."""
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 from helpers import observed_orders
 
 import jaxtissue as jt
 from jaxtissue.growth import GrowthModel, State
+from jaxtissue.linsolve import FivePoint, GrowthJacobian, thomas_factor, thomas_solve
 from jaxtissue.params import nondimensionalise
 from jaxtissue.solver import ROS34PW2
 
@@ -44,3 +47,45 @@ def test_adaptive_solution_matches_kvaerno5():
     reference = _solve(diffrax.Kvaerno5(), y0, diffrax.PIDController(rtol=1e-11, atol=1e-14), dt0=1.0)
     ours = _solve(ROS34PW2(), y0, diffrax.PIDController(rtol=1e-8, atol=1e-11), dt0=1.0)
     assert float(jnp.max(jnp.abs(ours - reference))) < 1e-6
+
+
+def _dense_five_point(op: FivePoint) -> np.ndarray:
+    """The operator as a dense matrix (columns: its action on unit vectors)."""
+    nx, ny = op.diag.shape
+    eye = np.eye(nx * ny).reshape(nx * ny, nx, ny)
+    return np.stack([np.asarray(op(jnp.asarray(e))).ravel() for e in eye], axis=1)
+
+
+def test_structured_solves_equal_dense_solves():
+    rng = np.random.default_rng(1)
+    # Thomas: batched systems along the last axis, under vmap, and its transpose (grad)
+    n = 9
+    sub, sup = -rng.random((2, 3, n)), -rng.random((2, 3, n))
+    diag = 2.5 + rng.random((2, 3, n))
+    r = rng.random((2, 3, n))
+    x = np.asarray(thomas_solve(thomas_factor(*map(jnp.asarray, (sub, diag, sup))), jnp.asarray(r)))
+    for i in range(2):
+        for j in range(3):
+            A = np.diag(diag[i, j]) + np.diag(sub[i, j, 1:], -1) + np.diag(sup[i, j, :-1], 1)
+            np.testing.assert_allclose(x[i, j], np.linalg.solve(A, r[i, j]), rtol=1e-12)
+    A = np.diag(diag[0, 0]) + np.diag(sub[0, 0, 1:], -1) + np.diag(sup[0, 0, :-1], 1)
+    w = rng.random(n)
+    g = jax.grad(lambda b: jnp.dot(w, thomas_solve(thomas_factor(*map(jnp.asarray, (sub[0, 0], diag[0, 0], sup[0, 0]))), b)))(jnp.asarray(r[0, 0]))
+    np.testing.assert_allclose(g, np.linalg.solve(A.T, w), rtol=1e-12)
+    batched = jax.vmap(lambda d, b: thomas_solve(thomas_factor(jnp.asarray(sub[0]), d, jnp.asarray(sup[0])), b))(jnp.asarray(diag), jnp.asarray(r))
+    np.testing.assert_allclose(batched[1], [np.linalg.solve(np.diag(diag[1, j]) + np.diag(sub[0, j, 1:], -1) + np.diag(sup[0, j, :-1], 1), r[1, j]) for j in range(3)], rtol=1e-12)
+    # the growth Jacobian's shifted solve, 1-D (Thomas) and 2-D (block Thomas), against
+    # the dense (a I - J~) of the same probed blocks
+    for shape in ((1, 7), (4, 5)):
+        f = lambda k: rng.random(shape) * k  # noqa: E731
+        jac = GrowthJacobian(oo_diag=-2 - f(1), oo_south=f(0.5), oo_north=f(0.5), oo_west=f(0.4) * (shape[0] > 1),
+                             oo_east=f(0.4) * (shape[0] > 1), oc=-f(0.3), co=f(0.2), cc=-f(0.5), mo=f(0.1), mc=f(0.1), mm=-f(0.2))
+        a = 3.0
+        rhs = State(o=jnp.asarray(f(1)), c=jnp.asarray(f(1)), m=jnp.asarray(f(1)))
+        x = jac.factor(a).solve(rhs)
+        Z = np.zeros((shape[0] * shape[1],) * 2)
+        oo = _dense_five_point(FivePoint(jac.oo_diag, jac.oo_south, jac.oo_north, jac.oo_west, jac.oo_east))
+        d = lambda v: np.diag(np.asarray(v).ravel())  # noqa: E731
+        J = np.block([[oo, d(jac.oc), Z], [d(jac.co), d(jac.cc), Z], [d(jac.mo), d(jac.mc), d(jac.mm)]])
+        dense = np.linalg.solve(a * np.eye(J.shape[0]) - J, np.concatenate([np.asarray(v).ravel() for v in (rhs.o, rhs.c, rhs.m)]))
+        np.testing.assert_allclose(np.concatenate([np.asarray(v).ravel() for v in (x.o, x.c, x.m)]), dense, rtol=1e-10)
