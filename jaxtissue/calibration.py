@@ -34,7 +34,7 @@ import optimistix as optx
 from .beam import BeamGrid
 from .data import DataError, Observation, read_measurements
 from .grid import Grid
-from .io import InputError, params_from_table, read_toml
+from .io import InputError, number, params_from_table, read_toml
 from .params import FIELDS, Params, suggest
 from .simulate import Protocol, SolverOptions, save_times, simulate
 from .sweep import unit_latin_hypercube
@@ -380,11 +380,10 @@ def _settings(cls, table, where, section):
         if isinstance(default, int) and not isinstance(default, bool):
             ok = isinstance(v, int) and not isinstance(v, bool) and v >= (0 if k == "seed" else 1)
             need = "an integer >= 0" if k == "seed" else "a positive integer"
+            if not ok:
+                raise InputError(f"{where}: [{section}] {k} = {v!r} must be {need}")
         else:
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-            need = "a positive number"
-        if not ok:
-            raise InputError(f"{where}: [{section}] {k} = {v!r} must be {need}")
+            v = number(v, f"{where}: [{section}] {k}", positive=True)
         kwargs[k] = type(default)(v)
     settings = cls(**kwargs)
     if cls is ModelSettings:

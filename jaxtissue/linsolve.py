@@ -199,7 +199,7 @@ class FivePointFactor(eqx.Module):
 
     def solve(self, r: Field) -> Field:
         op = self.op
-        if self.block_inverses is None:
+        if self.thomas is not None:
             return thomas_solve(self.thomas, r)
         invs = self.block_inverses
 

@@ -297,9 +297,9 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     y0 = State.initial(coeffs, grid) if initial_state is None else initial_state
     bounds = interval_bounds(times[-1], coupling_interval_s, times[0])
     extra = THREE_WEEKS_S in times and THREE_WEEKS_S not in bounds
+    ts = jnp.asarray(out_times)
     if protocol.regime == "static":
         model = GrowthModel(coeffs=coeffs, grid=grid)
-        ts = jnp.asarray(out_times)
         sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
         series, states = sol.ys
         series["post_force_max_N"] = jnp.zeros(len(out_times))
@@ -355,7 +355,6 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         if end_only:
             series = {k: v[-1:] for k, v in series.items()}
     # concentrations out of bounds (where the solves themselves succeeded)
-    ts = jnp.asarray(out_times)
     bad = _out_of_bounds(series, params)
     first_bad = jnp.argmax(bad)
     t_bad = jnp.where(first_bad > 0, ts[jnp.maximum(first_bad - 1, 0)], times[0])  # the last good save time

@@ -30,7 +30,7 @@ import numpy as np
 from .beam import BeamGrid
 from .data import QUANTITIES
 from .grid import Grid
-from .io import InputError, atomic_write, number, atomic_write_text, params_from_table, read_toml, write_netcdf
+from .io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
 from .params import FIELDS, Params, suggest
 from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, save_times, simulate
 
@@ -253,11 +253,13 @@ def use_all_cores() -> bool:
     alone; accelerators are unaffected. Returns whether the setting was made."""
     import os
 
-    from jax._src import xla_bridge
-
+    try:  # not public API: where it is missing, leave the devices as they are
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        return False
     flags = os.environ.get("XLA_FLAGS", "")
     cores = os.cpu_count() or 1
-    if cores < 2 or "xla_force_host_platform_device_count" in flags or xla_bridge.backends_are_initialized():
+    if cores < 2 or "xla_force_host_platform_device_count" in flags or backends_are_initialized():
         return False
     os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={cores}".strip()
     return True
