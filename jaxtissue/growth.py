@@ -14,7 +14,9 @@ dispersivity D_disp, MODEL.md §5) enters through `Transport`; static culture ha
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import operators as ops
 from ._types import Field
@@ -74,17 +76,31 @@ def ecm_synthesis_rate(o, coeffs: Coefficients):
     return coeffs.k_m0 * jnp.maximum(o - coeffs.o_m, 0.0)
 
 
+def has_cell_transport(p) -> bool:
+    """False only if `p.D_c` and `p.chi` (of `Params` or `Coefficients`) are both
+    concrete (untraced) zeros: the cell flux of (2.3) is then identically zero, whatever
+    is being differentiated."""
+
+    def zero(x):
+        return not isinstance(x, jax.core.Tracer) and bool(np.all(np.asarray(x) == 0.0))
+
+    return not (zero(p.D_c) and zero(p.chi))
+
+
 class GrowthModel(eqx.Module):
     """The right-hand side of the growth system (module docstring), as a callable pytree.
 
     `advection` chooses the scheme for v̂·∇o: `"limited"` (MUSCL, van Leer; second
-    order) or `"upwind"` (first order).
+    order) or `"upwind"` (first order). `cell_transport=False` drops the cell flux
+    (motility, chemotaxis): for D_c = χ = 0 known before tracing (`has_cell_transport`),
+    where it is identically zero.
     """
 
     coeffs: Coefficients
     grid: Grid
     transport: Transport | None = None
     advection: str = eqx.field(static=True, default="limited")
+    cell_transport: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.advection not in ("limited", "upwind"):
@@ -112,7 +128,9 @@ class GrowthModel(eqx.Module):
                 limited=self.advection == "limited",
             )
         # cells (2.3): random motility and chemotaxis, no flux through any face
-        dc = proliferation_rate(o, k) * c * (k.c_max - c) + self.cell_flux_divergence(o, c)
+        dc = proliferation_rate(o, k) * c * (k.c_max - c)
+        if self.cell_transport:
+            dc = dc + self.cell_flux_divergence(o, c)
         # ECM (2.5, 2.6)
         dm = ecm_synthesis_rate(o, k) * c * (1.0 - m)
         return State(o=do, c=dc, m=dm)
@@ -123,7 +141,7 @@ class GrowthModel(eqx.Module):
         `linsolve` probes exactly (the limiter's wider stencil would alias)."""
         if self.transport is None or self.advection == "upwind":
             return self
-        return GrowthModel(self.coeffs, self.grid, self.transport, advection="upwind")
+        return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport)
 
     def cell_flux_divergence(self, o, c) -> Field:
         """−∇·J_c with J_c = −D_c ∇c + χ c (c_max − c) ∇o and J_c = 0 on every face."""

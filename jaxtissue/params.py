@@ -197,7 +197,11 @@ def paper_parameters(**changes) -> Params:
 def moser_aiba(o, n, o_c, k_i):
     """The O2 dependence of proliferation, `oⁿ/(o_cⁿ + oⁿ) exp(−k_i o)` (A.6), for o ≥ 0."""
     o = jnp.maximum(o, 1e-30)
-    ratio = jnp.power(o_c / o, n)
+    # (o_c/o)ⁿ as exp(n (ln o_c − ln o)), the log in a kernel of its own: XLA:CPU
+    # vectorises a lone log but not one fused with other operations (`power` is slower
+    # still); this function is most of the cost of the growth right-hand side.
+    log_o = jax.lax.optimization_barrier(jnp.log(o))
+    ratio = jnp.exp(n * (jnp.log(o_c) - log_o))
     return jnp.exp(-k_i * o) / (1.0 + ratio)
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from . import observables as obs
 from .grid import Grid
-from .growth import GrowthModel, State
+from .growth import GrowthModel, State, has_cell_transport
 from .params import Params, concrete_value, nondimensionalise
 from .beam import BeamGrid, loading_cycle
 from .coupling import RULES, beam_from_ecm, lumped_transport
@@ -289,7 +289,8 @@ def flex_cycle(y: State, params: Params, protocol: Protocol, grid: Grid, beam_gr
 
 
 @eqx.filter_jit
-def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGrid, schedule: tuple, options, initial_state, progress):
+def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGrid, schedule: tuple, options, initial_state, progress,
+              cell_transport: bool):
     times, coupling_interval_s, end_only = schedule
     out_times = times[-1:] if end_only else times
     coeffs = nondimensionalise(params)
@@ -299,7 +300,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     extra = THREE_WEEKS_S in times and THREE_WEEKS_S not in bounds
     ts = jnp.asarray(out_times)
     if protocol.regime == "static":
-        model = GrowthModel(coeffs=coeffs, grid=grid)
+        model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport)
         sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
         series, states = sol.ys
         series["post_force_max_N"] = jnp.zeros(len(out_times))
@@ -318,7 +319,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             t0, t1, te = t0s[k], t1s[k], tes[k]
             _, cycle = flex_cycle(y, params, protocol.at(t0), grid, beam_grid)
             transport = lumped_transport(cycle, params, grid, beam_grid, protocol.lumping, protocol.pins)
-            model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport)
+            model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport, cell_transport=cell_transport)
             sol = growth_solve(model, y, t0, t1, jnp.stack([te, t1]), options, args)
             series, states = sol.ys
             if progress:
@@ -434,6 +435,7 @@ def simulate(
     if save not in ("intervals", "end"):
         raise ValueError(f"save = {save!r}; allowed: 'intervals', 'end'")
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
+    cell_transport = has_cell_transport(params)  # known before the floats become traced
     params = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), params)
     protocol = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), protocol)
     if progress and protocol.regime == "flex":
@@ -441,7 +443,7 @@ def simulate(
 
         _Progress.bar = tqdm(total=len(interval_bounds(float(t_end_s), float(coupling_interval_s), float(t_start_s))) - 1, unit="interval", desc="flex culture")
     try:
-        return _simulate(params, protocol, grid, beam, (times, float(coupling_interval_s), save == "end"), options, initial_state, progress)
+        return _simulate(params, protocol, grid, beam, (times, float(coupling_interval_s), save == "end"), options, initial_state, progress, cell_transport)
     finally:
         if _Progress.bar is not None:
             _Progress.bar.close()

@@ -8,7 +8,7 @@ import pytest
 from helpers import frozen_cells, observed_orders
 
 import jaxtissue as jt
-from jaxtissue.growth import GrowthModel, State, Transport, o2_consumption, o2_diffusivity
+from jaxtissue.growth import GrowthModel, State, Transport, has_cell_transport, o2_consumption, o2_diffusivity
 from jaxtissue.params import nondimensionalise
 from jaxtissue.simulate import SolverOptions, growth_solve
 
@@ -143,3 +143,22 @@ def test_2d_static_run_equals_1d():
     r2 = jt.simulate(p, t_end_s=4.0e5, grid=jt.Grid(nx=6, ny=20))
     np.testing.assert_allclose(np.asarray(r2.final.m), np.broadcast_to(np.asarray(r1.final.m), (6, 20)), rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(np.asarray(r2.dna_ug_per_g), np.asarray(r1.dna_ug_per_g), rtol=1e-10)
+
+
+def test_cell_flux_is_dropped_only_when_known_to_be_zero():
+    """With D_c = χ = 0 given as numbers the cell flux of (2.3) is skipped; a traced
+    zero (being differentiated) keeps it; both runs agree."""
+    p = jt.paper_parameters()
+    assert not has_cell_transport(p)
+    assert has_cell_transport(p.replace(D_c=1e-9)) and has_cell_transport(p.replace(chi=1e-9))
+    seen = []
+
+    def collagen(d_c):
+        seen.append(has_cell_transport(p.replace(D_c=d_c)))
+        return jt.simulate(p.replace(D_c=d_c), t_end_s=3.0e5, grid=jt.Grid(ny=20)).collagen_mg_per_g
+
+    traced = jax.jit(collagen)(0.0)
+    assert seen == [True]
+    plain = jt.simulate(p, t_end_s=3.0e5, grid=jt.Grid(ny=20)).collagen_mg_per_g
+    np.testing.assert_allclose(plain, traced, rtol=1e-10)  # round-off through adaptive steps
+    assert np.isfinite(float(jax.grad(lambda d: collagen(d)[-1])(0.0)))
