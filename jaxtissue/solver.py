@@ -95,7 +95,11 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         # result discarded; a safe h keeps 1/h out of it (else 0 · inf = NaN gradients).
         active = t1 > t0
         h = jnp.where(active, t1 - t0, 1.0)
-        vf = lambda y: terms.vf(t0, y, args)  # noqa: E731  (autonomous)
+        # The right-hand side is autonomous, and rematerialised in the reverse pass: its
+        # intermediates (~60 fields per stage) would be most of a step's residuals.
+        # prevent_cse=False keeps the forward program as it is, so that the checkpointed
+        # adjoint's recomputation retraces the forward steps exactly (adaptive steps).
+        vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
         model = _vector_field(terms)
         surrogate = model.for_jacobian() if hasattr(model, "for_jacobian") else model
         if surrogate is model:

@@ -89,3 +89,24 @@ def test_structured_solves_equal_dense_solves():
         J = np.block([[oo, d(jac.oc), Z], [d(jac.co), d(jac.cc), Z], [d(jac.mo), d(jac.mc), d(jac.mm)]])
         dense = np.linalg.solve(a * np.eye(J.shape[0]) - J, np.concatenate([np.asarray(v).ravel() for v in (rhs.o, rhs.c, rhs.m)]))
         np.testing.assert_allclose(np.concatenate([np.asarray(v).ravel() for v in (x.o, x.c, x.m)]), dense, rtol=1e-10)
+
+
+def test_a_steps_reverse_pass_keeps_few_residuals():
+    """The reverse pass of one step stores its stage states and the factor, not the
+    right-hand side's intermediates (which are recomputed): this bounds the gradient's
+    memory (benchmarks/flex.py)."""
+    grid = jt.Grid(nx=6, ny=10)
+    transport = jt.Transport(vx=jnp.full(grid.shape, 1e-4), vy=jnp.zeros(grid.shape), dispersion=jnp.full(grid.shape, 1e-6))
+    y0 = State.initial(COEFFS, grid)
+    y0 = State(o=y0.o * 0.8, c=y0.c * 1.1, m=y0.m + 0.1)
+
+    def step(y, coeffs):
+        term = diffrax.ODETerm(GrowthModel(coeffs, grid, transport))
+        y1, err = ROS34PW2().step(term, 0.0, 100.0, y, None, None, False)[:2]
+        return jnp.sum(y1.m) + jnp.sum(err.o)
+
+    _, pullback = jax.vjp(step, y0, COEFFS)  # a pytree holding the residuals
+    factor = grid.nx * grid.ny * grid.ny  # the block inverses of the O2 operator
+    sizes = [x.size for x in jax.tree_util.tree_leaves(pullback)]
+    fields = sum(n for n in sizes if n != factor) / np.prod(grid.shape)
+    assert fields < 60, fields  # 4 stages x (3 states + 3 right-hand sides) + the few fields of the step itself
