@@ -17,7 +17,7 @@ from .growth import GrowthModel, State, has_cell_transport
 from .params import Params, concrete_value, nondimensionalise
 from .beam import BeamGrid, loading_cycle
 from .coupling import RULES, beam_from_ecm, lumped_transport
-from .solver import ROS34PW2
+from .solver import ROS34PW2, ReproducibleSteps
 
 THREE_WEEKS_S = 1.8144e6
 """The experiments' assay time, 21 days (MODEL.md §6)."""
@@ -136,7 +136,7 @@ class SolverOptions(eqx.Module):
     def controller(self, t0, t1):
         """diffrax step-size controller over [t0, t1]."""
         if self.fixed_steps is None:
-            return diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s)
+            return ReproducibleSteps(diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s))
         span = t1 - t0
         frac = jnp.geomspace(self.dt0_s / span, 1.0, self.fixed_steps)
         return diffrax.StepTo(ts=t0 + span * jnp.concatenate([jnp.zeros(1), frac]))

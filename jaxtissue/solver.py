@@ -9,7 +9,8 @@ JVPs (of the model's `for_jacobian()` surrogate, if it has one), factors `I/(γh
 uses it for all four stages. No nonlinear iterations: its cost per step is fixed and
 reverse-mode differentiation runs straight through it.
 
-diffrax supplies everything else: adaptive step control (`PIDController`), dense output
+diffrax supplies everything else: adaptive step control (`PIDController`, its steps
+rounded by `ReproducibleSteps` so that checkpointed gradients retrace them), dense output
 (cubic Hermite), saving, progress meters and checkpointed adjoints. The vector field
 must be autonomous (true of the growth model over one growth interval).
 """
@@ -97,8 +98,8 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         h = jnp.where(active, t1 - t0, 1.0)
         # The right-hand side is autonomous, and rematerialised in the reverse pass: its
         # intermediates (~60 fields per stage) would be most of a step's residuals.
-        # prevent_cse=False keeps the forward program as it is, so that the checkpointed
-        # adjoint's recomputation retraces the forward steps exactly (adaptive steps).
+        # (prevent_cse=False: the step runs inside loops, where CSE cannot merge the
+        # recomputation away; the forward program stays as it was.)
         vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
         model = _vector_field(terms)
         surrogate = model.for_jacobian() if hasattr(model, "for_jacobian") else model
@@ -119,13 +120,13 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         def stage(us, i):
             # stage i: (I/(γh) − J̃) u_i = f(y0 + Σ_j a_ij u_j) + Σ_j c_ij u_j / h, j < i
             yi = jtu.tree_map(jnp.add, y0, _combine(a_t[i], us))
-            fi = jax.lax.cond(i == 0, lambda: f0, lambda: vf(yi))
             memory = _combine(c_t[i], us)
-            ui = factor.solve(jtu.tree_map(lambda f, mm: f + mm / h, fi, memory))
+            ui = factor.solve(jtu.tree_map(lambda f, mm: f + mm / h, vf(yi), memory))
             return jtu.tree_map(lambda x, u: x.at[i].set(u), us, ui), None
 
-        us0 = jtu.tree_map(lambda x: jnp.zeros((4,) + x.shape, x.dtype), y0)
-        us, _ = jax.lax.scan(stage, us0, jnp.arange(4))
+        # stage 0 (y_0 = y0, no memory terms) outside the loop: its f is f0
+        us0 = jtu.tree_map(lambda x, u: jnp.zeros((4,) + x.shape, x.dtype).at[0].set(u), y0, factor.solve(f0))
+        us, _ = jax.lax.scan(stage, us0, jnp.arange(1, 4))
         increment = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(_M_T), us))
         y1 = jtu.tree_map(jnp.add, y0, increment)
         y_error = jtu.tree_map(lambda a, b: jnp.where(active, a - b, 0.0), increment, _combine(jnp.asarray(_M_EMBEDDED_T), us))
@@ -134,3 +135,49 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         k1 = jtu.tree_map(lambda f: (t1 - t0) * f, f1)
         dense_info = dict(y0=y0, y1=y1, k0=k0, k1=k1)
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful
+
+
+def _quantise(dt, bits=24):
+    """dt rounded down to `bits` significant bits (relative change < 2^(1−bits))."""
+    mantissa, exponent = jnp.frexp(dt)
+    return jnp.ldexp(jnp.floor(jnp.ldexp(mantissa, bits)), exponent - bits)
+
+
+class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
+    """A `diffrax.PIDController` whose step sizes are rounded to 24 significant bits.
+
+    The checkpointed adjoint recomputes steps from a few stored states inside the
+    reverse pass, a program that XLA compiles differently: its error estimates can
+    differ from the forward pass's in the last bit, and so would the raw step sizes,
+    which then compound into a different time grid; the reverse pass would run along
+    steps that the forward pass did not take (gradient errors ~1e-3 at rtol = 1e-10).
+    Rounded, they agree unless an error estimate sits within round-off of a rounding
+    boundary; the relative change of each step, < 1.2e-7, is far below any tolerance.
+    """
+
+    inner: diffrax.PIDController
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def wrap(self, direction):
+        return ReproducibleSteps(self.inner.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        return self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        keep, next_t0, next_t1, made_jump, state, result = self.inner.adapt_step_size(
+            t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+        )
+        dt = jax.lax.stop_gradient(next_t1 - next_t0)
+        return keep, next_t0, next_t0 + _quantise(dt), made_jump, state, result
