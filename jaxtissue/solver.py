@@ -103,11 +103,11 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
         model = _vector_field(terms)
         surrogate = model.for_jacobian() if hasattr(model, "for_jacobian") else model
-        if surrogate is model:
-            f0, jvp = jax.linearize(vf, y0)
-        else:
-            f0 = vf(y0)
-            _, jvp = jax.linearize(lambda y: surrogate(t0, y, args), y0)
+        f0 = vf(y0)
+        # The JVP only feeds J̃, which is held constant. (f0 must not be taken from this
+        # linearisation's primal output: used as stage 0's right-hand side it gave wrong
+        # checkpointed gradients; XLA merges the two evaluations anyway.)
+        _, jvp = jax.linearize(lambda y: surrogate(t0, y, args), y0)
         shape = jtu.tree_leaves(y0)[0].shape
         # A W-method keeps its order for any J̃, so J̃ is held constant under
         # differentiation: no second derivatives, and the gradient differs from that
