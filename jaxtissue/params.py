@@ -199,7 +199,7 @@ def moser_aiba(o, n, o_c, k_i):
     o = jnp.maximum(o, 1e-30)
     # (o_c/o)ⁿ as exp(n (ln o_c − ln o)), the log in a kernel of its own: XLA:CPU
     # vectorises a lone log but not one fused with other operations (`power` is slower
-    # still); this function is most of the cost of the growth right-hand side.
+    # still); this function is a large part of the growth right-hand side's cost.
     log_o = jax.lax.optimization_barrier(jnp.log(o))
     ratio = jnp.exp(n * (jnp.log(o_c) - log_o))
     return jnp.exp(-k_i * o) / (1.0 + ratio)
