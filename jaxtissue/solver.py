@@ -149,10 +149,12 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
     The checkpointed adjoint recomputes steps from a few stored states inside the
     reverse pass, a program that XLA compiles differently: its error estimates can
     differ from the forward pass's in the last bit, and so would the raw step sizes,
-    which then compound into a different time grid; the reverse pass would run along
-    steps that the forward pass did not take (gradient errors ~1e-3 at rtol = 1e-10).
-    Rounded, they agree unless an error estimate sits within round-off of a rounding
-    boundary; the relative change of each step, < 1.2e-7, is far below any tolerance.
+    which then compound into a different time grid (seen: 1 ulp at first, 1e-4 s
+    later), so that the reverse pass differentiates steps the forward pass did not
+    take (measured effect on gradients at rtol 1e-10: ≤ 2e-5 relative). Rounded, they
+    agree unless an error estimate sits within round-off of a rounding boundary; a
+    vmapped batch then also equals the single runs to round-off. The relative change
+    of each step, < 1.2e-7, is far below any tolerance.
     """
 
     inner: diffrax.PIDController
