@@ -170,9 +170,7 @@ def read_sweep(path) -> Sweep:
     regime = doc.get("regime", "static")
     if regime not in ("static", "flex"):
         raise InputError(f"{where}: regime = {regime!r}; allowed: 'static', 'flex'")
-    t_end = number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s")
-    if t_end <= 0:
-        raise InputError(f"{where}: t_end_s = {t_end:g} must be > 0 s")
+    t_end = number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s", positive=True)
     outputs = doc.get("outputs", "final")
     if outputs not in ("final", "series"):
         raise InputError(f"{where}: outputs = {outputs!r}; allowed: 'final', 'series'")
