@@ -134,6 +134,19 @@ def test_structured_jacobian_equals_forward_mode(P_over_PE):
     np.testing.assert_allclose(beam.jacobian(z, args), jax.jacfwd(beam.residual)(z, args), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("P_over_PE", [0.9, -0.7, 0.0, 3.5])
+def test_structured_newton_solve_equals_dense_lu(P_over_PE):
+    """NewtonMatrix.solve (triangular sweep + 2 × 2 border) against LU of the dense J."""
+    beam = uniform_beam(n_segments=20, ny=8, law="neo-hookean")
+    key1, key2, key3 = jax.random.split(jax.random.PRNGKey(1), 3)
+    z = (beam.rest_state() + 0.1 * jax.random.normal(key1, (21,))).at[-1].set(P_over_PE)
+    a = 1e2 * jax.random.normal(key2, beam.material.E.shape)
+    _, J = beam.linearise(z, (1e-3, a, 0.1 * a))
+    rhs = jax.random.normal(key3, (21,))
+    expected = np.linalg.solve(np.asarray(J.dense()), np.asarray(rhs))
+    np.testing.assert_allclose(J.solve(rhs), expected, rtol=1e-11, atol=1e-11 * np.abs(expected).max())
+
+
 def test_equilibrium_derivative_is_the_implicit_function_theorem():
     """d(post force)/dE of a drained equilibrium against central differences."""
     base = uniform_beam(n_segments=20, ny=8, law="neo-hookean")
