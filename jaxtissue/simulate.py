@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import diffrax
@@ -14,6 +15,7 @@ import numpy as np
 from . import observables as obs
 from .grid import Grid
 from .growth import GrowthModel, State, has_cell_transport
+from .linsolve import line_sweeps
 from .params import Params, concrete_value, nondimensionalise
 from .beam import BeamGrid, loading_cycle
 from .coupling import RULES, beam_from_ecm, lumped_transport
@@ -112,6 +114,12 @@ class SolverOptions(eqx.Module):
     fixed_steps: int | None = eqx.field(static=True, default=None)
     """If set: no step control, this many steps growing geometrically from `dt0_s`
     (the same discrete map for every parameter value: for finite-difference checks)."""
+    o2_sweeps: int | None = eqx.field(static=True, default=None)
+    """2-D grids: sweeps of line relaxation in each step's O2 solve, 0 for block
+    elimination, None to choose from the grid and the strip's thickness/length
+    (`linsolve.line_sweeps`: 6 on the default 50 × 40 grid, 0 for cells shorter than
+    h/3). Fewer sweeps approximate the step's Jacobian more coarsely (see
+    `linsolve`): cheaper steps, possibly more of them."""
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""
@@ -125,6 +133,8 @@ class SolverOptions(eqx.Module):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or value < 1):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive integer")
+        if self.o2_sweeps is not None and (not isinstance(self.o2_sweeps, int) or self.o2_sweeps < 0):
+            raise ValueError(f"solver option o2_sweeps = {self.o2_sweeps!r} must be None or an integer >= 0")
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
 
@@ -255,7 +265,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(**at, fn=_observe), diffrax.SubSaveAt(**at)])
     return diffrax.diffeqsolve(
         diffrax.ODETerm(model),
-        ROS34PW2(),
+        ROS34PW2(o2_sweeps=options.o2_sweeps or 0),
         t0=t0,
         t1=t1,
         dt0=options.dt0_s if options.fixed_steps is None else None,
@@ -375,6 +385,15 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     )
 
 
+def _o2_sweeps(grid: Grid, params: Params) -> int:
+    """`SolverOptions.o2_sweeps` chosen from the grid and the strip's h/Δx (the largest
+    of a batch; the paper's 1 mm × 25 mm strip where they are traced)."""
+    h, length = concrete_value(params.thickness_mm), concrete_value(params.length_mm)
+    h = 1.0 if h is None else float(np.max(h))
+    length = 25.0 if length is None else float(np.min(length))
+    return line_sweeps(grid.nx, h * grid.nx / length)
+
+
 def simulate(
     params: Params,
     protocol: Protocol | None = None,
@@ -436,6 +455,8 @@ def simulate(
         raise ValueError(f"save = {save!r}; allowed: 'intervals', 'end'")
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
     cell_transport = has_cell_transport(params)  # known before the floats become traced
+    if options.o2_sweeps is None:
+        options = dataclasses.replace(options, o2_sweeps=_o2_sweeps(grid, params))
     params = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), params)
     protocol = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), protocol)
     if progress and protocol.regime == "flex":

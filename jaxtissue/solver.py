@@ -20,6 +20,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -78,6 +79,9 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar = diffrax.ThirdOrderHermitePolynomialInterpolation
+    o2_sweeps: int = eqx.field(static=True, default=0)
+    """2-D grids: sweeps of line relaxation for the O2 solve (0: block elimination;
+    `linsolve.line_sweeps`)."""
 
     def order(self, terms):
         return 3
@@ -113,7 +117,7 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         # differentiation: no second derivatives, and the gradient differs from that
         # of the discrete map only at the level of the local error.
         jac = jax.lax.stop_gradient(GrowthJacobian.probe(jvp, shape))
-        factor = jac.factor(1.0 / (_GAMMA * h))
+        factor = jac.factor(1.0 / (_GAMMA * h), self.o2_sweeps)
 
         a_t, c_t = jnp.asarray(_A_T), jnp.asarray(_C_T)
 

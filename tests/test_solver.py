@@ -2,6 +2,7 @@
 its structured linear algebra against dense solves."""
 
 import diffrax
+import pytest
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,8 +10,9 @@ from helpers import observed_orders
 
 import jaxtissue as jt
 from jaxtissue.growth import GrowthModel, State
-from jaxtissue.linsolve import FivePoint, GrowthJacobian, thomas_factor, thomas_solve
+from jaxtissue.linsolve import FivePoint, GrowthJacobian, line_sweeps, thomas_factor, thomas_solve
 from jaxtissue.params import nondimensionalise
+from jaxtissue.simulate import _o2_sweeps
 from jaxtissue.solver import ROS34PW2
 
 GRID = jt.Grid(ny=12)
@@ -122,3 +124,71 @@ def test_step_sizes_are_rounded_so_round_off_cannot_move_the_time_grid():
     q = _quantise(dt)
     assert bool(jnp.all(q <= dt)) and bool(jnp.all((dt - q) / dt < 2.0**-23))
     assert float(jnp.mean(_quantise(jnp.nextafter(dt, jnp.inf)) == q)) > 0.99
+
+
+def _strip_operator(nx, ny, aspect, seed=0):
+    """a I − (diffusion) on an nx × ny grid whose cells are `aspect` times longer than
+    thick (a varying diffusivity), as FivePoint."""
+    rng = np.random.default_rng(seed)
+    D = 1.0 + rng.random((nx, ny))
+    cy, cx = D, D / aspect**2
+    south = -cy * (np.arange(ny) > 0)
+    north = -cy * (np.arange(ny) < ny - 1)
+    west = -cx * (np.arange(nx) > 0)[:, None]
+    east = -cx * (np.arange(nx) < nx - 1)[:, None]
+    diag = 1e-3 + 2 * cy - west - east  # surfaces drained (2 cy on the faces), ends no-flux
+    return FivePoint(*map(jnp.asarray, (diag, south, north, west, east)))
+
+
+def test_line_relaxation_contracts_as_line_sweeps_predicts():
+    """k sweeps leave an error ≤ ρᵏ of the exact solve (ρ of `line_sweeps`), and are a
+    fixed linear map (what makes them a valid J̃ for the W-method)."""
+    nx, ny = 20, 10
+    for r in (0.5, 1.5):  # h/Δx
+        op = _strip_operator(nx, ny, aspect=ny / r)
+        rhs = jnp.asarray(np.random.default_rng(1).random((nx, ny)))
+        exact = op.factor(0).solve(rhs)
+        np.testing.assert_allclose(op(exact), rhs, rtol=1e-10)
+        rho = 2 * r**2 / (2 * r**2 + np.pi**2)
+        for k in (2, 4):
+            err = float(jnp.max(jnp.abs(op.factor(k).solve(rhs) - exact)) / jnp.max(jnp.abs(exact)))
+            assert err <= 2 * rho**k, (r, k, err, rho**k)
+            assert err > 1e-3 * rho**k  # really approximate: the test sees the sweeps
+        twice = op.factor(2).solve(2 * rhs) - 2 * op.factor(2).solve(rhs)
+        assert float(jnp.max(jnp.abs(twice))) < 1e-12
+    assert line_sweeps(1, 0.0) == 0
+    assert line_sweeps(50, 2.0) == 6  # the default flex grid: ρ = 0.45, ρ⁶ = 0.008
+    assert line_sweeps(200, 8.0) == 0  # ρ = 0.93: block elimination
+
+
+def test_order_in_time_with_line_relaxation():
+    """A 2-D strip (6 × 6 cells) whose solution is uniform along x — the mode that line
+    relaxation converges slowest. With the sweeps `line_sweeps` chooses (4 for a 6 mm
+    strip, ρ⁴ = 8e-4) ROS34PW2 keeps its third order at these stiff step sizes; with 2
+    sweeps on a 2 mm strip (ρ² = 0.42) the error of J̃ shows: order 1."""
+    for length_mm, sweeps, lowest, highest in ((6.0, None, 2.7, np.inf), (2.0, 2, 0.0, 1.5)):
+        params = jt.paper_parameters().replace(length_mm=length_mm)
+        grid = jt.Grid(nx=6, ny=6)
+        if sweeps is None:
+            sweeps = line_sweeps(grid.nx, 1.0 * grid.nx / length_mm)
+            assert sweeps == 4
+        model = GrowthModel(nondimensionalise(params), grid, cell_transport=False)
+        y0 = jt.simulate(params, t_end_s=2.0e4, grid=grid, options=jt.SolverOptions(rtol=1e-10, atol=1e-13, o2_sweeps=0)).final
+
+        def solve(solver, controller, dt0):
+            sol = diffrax.diffeqsolve(diffrax.ODETerm(model), solver, 0.0, T, dt0, y0, stepsize_controller=controller, max_steps=100000)
+            return jnp.concatenate([sol.ys.o[-1].ravel(), sol.ys.c[-1].ravel(), sol.ys.m[-1].ravel()])
+
+        reference = solve(diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-12, atol=1e-14), 1.0)
+        ns = [4, 8, 16, 32]
+        errors = [float(jnp.max(jnp.abs(solve(ROS34PW2(o2_sweeps=sweeps), diffrax.ConstantStepSize(), T / n) - reference))) for n in ns]
+        orders = observed_orders([T / n for n in ns], errors)
+        assert np.all((orders[1:] > lowest) & (orders[1:] < highest)), (length_mm, errors, orders)
+
+
+def test_o2_sweeps_option_is_checked_and_chosen_from_the_strip():
+    with pytest.raises(ValueError, match=r"o2_sweeps = -1 must be None or an integer >= 0"):
+        jt.SolverOptions(o2_sweeps=-1)
+    assert _o2_sweeps(jt.Grid(50, 40), jt.paper_parameters()) == 6
+    assert _o2_sweeps(jt.Grid(50, 40), jt.paper_parameters().replace(length_mm=5.0)) == 0  # Δx = h/10
+    assert _o2_sweeps(jt.Grid(1, 40), jt.paper_parameters()) == 0
