@@ -39,7 +39,7 @@ def test_third_order_in_time():
     y0 = _smooth_start()
     reference = _solve(diffrax.Kvaerno5(), y0, diffrax.PIDController(rtol=1e-12, atol=1e-14), dt0=1.0)
     ns = [4, 8, 16, 32]
-    errors = [float(jnp.max(jnp.abs(_solve(ROS34PW2(), y0, diffrax.ConstantStepSize(), T / n) - reference))) for n in ns]
+    errors = [float(jnp.max(jnp.abs(_solve(ROS34PW2(), y0, diffrax.ConstantStepSize(), jnp.asarray(T / n)) - reference))) for n in ns]
     orders = observed_orders([T / n for n in ns], errors)
     assert np.all(orders[1:] > 2.7), (errors, orders)
 
@@ -181,7 +181,7 @@ def test_order_in_time_with_line_relaxation():
 
         reference = solve(diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-12, atol=1e-14), 1.0)
         ns = [4, 8, 16, 32]
-        errors = [float(jnp.max(jnp.abs(solve(ROS34PW2(o2_sweeps=sweeps), diffrax.ConstantStepSize(), T / n) - reference))) for n in ns]
+        errors = [float(jnp.max(jnp.abs(solve(ROS34PW2(o2_sweeps=sweeps), diffrax.ConstantStepSize(), jnp.asarray(T / n)) - reference))) for n in ns]
         orders = observed_orders([T / n for n in ns], errors)
         assert np.all((orders[1:] > lowest) & (orders[1:] < highest)), (length_mm, errors, orders)
 
