@@ -43,7 +43,7 @@ def main():
                                      verbose=lambda **kw: jax.debug.callback(record, kw["loss_last_accepted_step"][1]))
     x0 = np.asarray(cal.latin_hypercube(problem, 1, 0)[0])
     def lm_solve(u0):
-        sol = optx.least_squares(lambda u, _: problem.residuals(problem.t_from_u(u)), solver, u0, None,
+        sol = optx.least_squares(cal.jacobian_once(lambda u, _: problem.residuals(problem.t_from_u(u))), solver, u0, None,
                                  max_steps=problem.fit.max_steps, throw=False, options=dict(jac="fwd"))
         return sol.value, sol.stats["num_steps"]
 

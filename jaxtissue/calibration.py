@@ -228,6 +228,34 @@ def _solver(problem: Problem, batched: bool, pinned: bool):
     return jax.jit(jax.vmap(solve, in_axes=(0, None)) if batched else solve)
 
 
+def jacobian_once(residual):
+    """`residual(u, args)` whose linearisation at u materialises the Jacobian once, by
+    forward mode (one JVP per free parameter, with the residuals from the same pass).
+
+    optimistix's Levenberg–Marquardt linearises the residuals each step and applies the
+    linear map several times (the Jacobian's columns, the predicted reduction); a model
+    with while loops (adaptive solves, Newton iterations) cannot be partially evaluated,
+    so each application would rerun the model. Here each application is a matrix
+    product."""
+
+    @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+    def fn(u, args):
+        return residual(u, args)
+
+    @fn.defjvp
+    def _(args, primals, tangents):
+        (u,), (du,) = primals, tangents
+
+        def twice(v):
+            r = residual(v, args)
+            return r, r
+
+        jac, r = jax.jacfwd(twice, has_aux=True)(u)
+        return r, jac @ du
+
+    return fn
+
+
 def _lm(problem: Problem, max_steps: int, pinned: bool):
     """An LM solve from u0 (optionally with free parameter `i` pinned at t_i)."""
     solver = optx.LevenbergMarquardt(rtol=problem.fit.rtol, atol=problem.fit.rtol)  # Cauchy termination
@@ -240,7 +268,7 @@ def _lm(problem: Problem, max_steps: int, pinned: bool):
         return problem.residuals(t)
 
     def solve(u0, args):
-        sol = optx.least_squares(residual, solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
+        sol = optx.least_squares(jacobian_once(residual), solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
         r = residual(sol.value, args)
         return sol.value, jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 

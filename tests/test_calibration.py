@@ -4,6 +4,7 @@ import dataclasses
 import json
 import pathlib
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -204,3 +205,19 @@ def test_result_values_in_fitted_file_reproduce_the_model(recovered, tmp_path):
                          coupling_interval_s=problem.model.coupling_interval_s, options=problem.model.options())
     i = [k for k, o in enumerate(problem.observations) if o.quantity == "collagen_mg_per_g" and o.regime == "static"][-1]
     assert float(static.collagen_mg_per_g[-1]) == pytest.approx(float(problem.model_values(jnp.asarray(best.t))[i]), rel=1e-9)
+
+
+def test_jacobian_once_is_forward_mode_and_its_linear_map_a_matrix_product():
+    def residual(u, scale):  # a while loop, as in the model's adaptive and Newton solves
+        root = jax.lax.while_loop(lambda c: c[1] < 40, lambda c: (0.5 * (c[0] + scale * u[0] / c[0]), c[1] + 1), (u[0] + 1.0, 0))[0]
+        return jnp.stack([root, u[0] * u[1], jnp.sin(u[1])])
+
+    u, du = jnp.array([2.0, 0.3]), jnp.array([0.7, -1.1])
+    wrapped = cal.jacobian_once(residual)
+    np.testing.assert_allclose(wrapped(u, 3.0), residual(u, 3.0), rtol=1e-15)
+    expected = jax.jvp(lambda v: residual(v, 3.0), (u,), (du,))[1]
+    np.testing.assert_allclose(expected[0], 0.5 * (3.0 / 2.0) ** 0.5 * 0.7, rtol=1e-12)  # d sqrt(3 u0)
+    for fn, loops in ((residual, True), (wrapped, False)):
+        _, lin = jax.linearize(lambda v: fn(v, 3.0), u)
+        np.testing.assert_allclose(lin(du), expected, rtol=1e-12)
+        assert ("while" in str(jax.make_jaxpr(lin)(du))) == loops  # the original reruns its loop per application
