@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
 
 from .beam import BeamGrid
 from .data import DataError, Observation, read_measurements
@@ -238,21 +239,24 @@ def jacobian_once(residual):
     so each application would rerun the model. Here each application is a matrix
     product."""
 
-    @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+    @jax.custom_jvp
     def fn(u, args):
         return residual(u, args)
 
-    @fn.defjvp
-    def _(args, primals, tangents):
-        (u,), (du,) = primals, tangents
+    def jvp(primals, tangents):
+        (u, args), (du, dargs) = primals, tangents
+        zero = lambda t: isinstance(t, SymbolicZero)  # noqa: E731
+        if not all(map(zero, jax.tree_util.tree_leaves(dargs, is_leaf=zero))):
+            raise NotImplementedError("jacobian_once differentiates with respect to u only, not args")
 
         def twice(v):
             r = residual(v, args)
             return r, r
 
         jac, r = jax.jacfwd(twice, has_aux=True)(u)
-        return r, jac @ du
+        return r, jac @ (jnp.zeros_like(u) if zero(du) else du)
 
+    fn.defjvp(jvp, symbolic_zeros=True)
     return fn
 
 

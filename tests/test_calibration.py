@@ -221,3 +221,6 @@ def test_jacobian_once_is_forward_mode_and_its_linear_map_a_matrix_product():
         _, lin = jax.linearize(lambda v: fn(v, 3.0), u)
         np.testing.assert_allclose(lin(du), expected, rtol=1e-12)
         assert ("while" in str(jax.make_jaxpr(lin)(du))) == loops  # the original reruns its loop per application
+    assert jax.vmap(lambda s: wrapped(u, s))(jnp.array([3.0, 4.0])).shape == (2, 3)  # args may be traced
+    with pytest.raises(NotImplementedError, match="with respect to u only"):
+        jax.jvp(lambda s: wrapped(u, s), (3.0,), (1.0,))
