@@ -3,9 +3,10 @@ diffrax solver.
 
 `ROS34PW2` is the Rosenbrock-W method of Rang & Angermann (2005): 4 stages, order 3
 with an embedded order-2 solution for step control, L-stable and stiffly accurate, and
-— being a W-method — of full order for any approximation of the Jacobian. Each step
-builds the structured Jacobian `J̃` of `linsolve.GrowthJacobian` with a few coloured
-JVPs (of the model's `for_jacobian()` surrogate, if it has one), factors `I/(γh) − J̃` once (tridiagonal or block-tridiagonal, never dense) and
+— being a W-method — of full order (as h → 0) for any approximation of the Jacobian.
+Each step builds the structured Jacobian `J̃` of `linsolve.GrowthJacobian` with a few
+coloured JVPs (of the model's `for_jacobian()` surrogate, if it has one), factors
+`I/(γh) − J̃` once (tridiagonal, block-tridiagonal or line relaxation; never dense) and
 uses it for all four stages. No nonlinear iterations: its cost per step is fixed and
 reverse-mode differentiation runs straight through it.
 
