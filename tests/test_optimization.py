@@ -113,6 +113,7 @@ grid_points = 5
 """ + TINY_TOML
 
 
+@pytest.mark.slow  # ~95 s; run with -m slow
 def test_optimize_command_beats_the_grid_inside_bounds_and_limits(tmp_path):
     problem = write_problem(tmp_path, PROBLEM)
     assert main(["optimize", str(problem), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
