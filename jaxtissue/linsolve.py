@@ -135,12 +135,9 @@ class FivePoint(eqx.Module):
 
     def __call__(self, u: Field) -> Field:
         z = jnp.zeros_like(u[:, :1])
-        zx = jnp.zeros_like(u[:1])
         up = jnp.concatenate([u[:, 1:], z], axis=1)
         down = jnp.concatenate([z, u[:, :-1]], axis=1)
-        right = jnp.concatenate([u[1:], zx], axis=0)
-        left = jnp.concatenate([zx, u[:-1]], axis=0)
-        return self.diag * u + self.south * down + self.north * up + self.west * left + self.east * right
+        return self.diag * u + self.south * down + self.north * up + self.x_coupling(u)
 
     def x_coupling(self, u: Field) -> Field:
         """The west/east terms of the operator alone."""

@@ -40,10 +40,11 @@ def three_week(result) -> dict:
     return {k: float(getattr(result, k)[i]) for k in KEYS}
 
 
-def _when(result) -> str:
-    """'3 weeks', or the time that `three_week` reads for a run that stops short of it."""
+def _when(result) -> str | None:
+    """None at 3 weeks, else the time that `three_week` reads ("t = … s") for a run
+    that stops short of it."""
     t = result.ts[result.index(THREE_WEEKS_S)]
-    return "3 weeks" if abs(t - THREE_WEEKS_S) < 1.0 else f"t = {t:g} s (the run ends before 3 weeks)"
+    return None if abs(t - THREE_WEEKS_S) < 1.0 else f"t = {t:g} s"
 
 
 def write(results: dict, params, folder) -> None:
@@ -76,7 +77,7 @@ def report(results: dict, params) -> str:
         "",
         f"Lumping rule: dispersive (default), C = {params.lumping_C:g}; growth grid "
         f"{results['flex'].final.m.shape[0]} × {results['flex'].final.m.shape[1]}; "
-        + ("3-week values (t = 1.8144e6 s); the data are at 3 weeks." if when == "3 weeks" else f"values at {when}; the data are at 3 weeks."),
+        + ("3-week values (t = 1.8144e6 s)." if when is None else f"values at {when} (the run ends before 3 weeks); the data are at 3 weeks."),
         "",
         "| case | DNA (µg/g) | collagen (mg/g) | E_eff (kPa) | peak post force (mN) |",
         "|---|---|---|---|---|",
@@ -99,7 +100,7 @@ def report(results: dict, params) -> str:
         "",
         "## Findings",
         "",
-        f"* Flex versus static at {when.split(' (')[0]}: collagen × {c['flex'] / c['static']:.3f} "
+        f"* Flex versus static at {when or '3 weeks'}: collagen × {c['flex'] / c['static']:.3f} "
         f"(data × {0.846 / 0.546:.3f}), DNA × {d['flex'] / d['static']:.3f} (data × {344 / 307:.3f}).",
         f"* Frequency: collagen {c['flex_0.5Hz']:.3f} (0.5 Hz) → {c['flex']:.3f} (1 Hz) → {c['flex_2Hz']:.3f} (2 Hz); "
         f"amplitude: {c['flex_2.5mm']:.3f} (2.5 mm) → {c['flex']:.3f} (5 mm) → {c['flex_10mm']:.3f} (10 mm).",
