@@ -115,7 +115,7 @@ def main(quick=False):
 
     forward = jax.jit(lambda p, q: jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM))
     _, t_first = timed(forward, params, protocol)
-    result, t_fwd = timed(forward, params, protocol)
+    result, t_fwd = timed(forward, params, protocol, repeat=3)
     print(f"\nforward: {t_fwd:.1f} s after compilation (compile + first run {t_first:.1f} s, compile ~{t_first - t_fwd:.1f} s)")
 
     # one coupling step's beam work: the cycle and its lumped dispersion on the growth grid
@@ -144,7 +144,7 @@ def main(quick=False):
 
     grad = jax.jit(jax.grad(collagen, argnums=(0, 1)))
     _, t_gfirst = timed(grad, params, protocol)
-    _, t_grad = timed(grad, params, protocol)
+    _, t_grad = timed(grad, params, protocol, repeat=3)
     mem = {}
     for name, fn in (("forward", forward), ("gradient", grad)):
         analysis = fn.lower(params, protocol).compile().memory_analysis()

@@ -41,6 +41,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .linsolve import thomas_factor, thomas_solve
@@ -288,34 +289,15 @@ class Beam(eqx.Module):
         """(θ, P/P_E) at end shortening u (m), from the guess z0; a, b: pore pressure
         p = a + κ b (zero: drained). Returns (z, converged).
 
-        Newton's method with the structured Jacobian (`linearise`, `NewtonMatrix`),
-        iterated without tracing derivatives until the step is below √tol, then one
-        more Newton step with the Jacobian at that point held fixed. Newton converges
-        quadratically: a step of √tol leaves an error ~tol, the final step ~tol². Its
-        value is the root, and its derivative is the implicit-function theorem's,
-        −J⁻¹ ∂r/∂(args, beam). Only the iterate is kept for the reverse pass (J is
-        rebuilt from it, a few vector ops, instead of storing a matrix per step)."""
+        Newton's method with the structured Jacobian (`linearise`, `NewtonMatrix`)
+        until the step is below √tol: Newton converges quadratically, so the error
+        left is ~tol. Derivatives are the implicit-function theorem's,
+        ż = −J⁻¹ ṙ with ṙ the residual's derivative at the root (`_newton_jvp`): the
+        iterations themselves are never differentiated."""
         if a is None:
             a = jnp.zeros_like(self.material.E)
             b = jnp.zeros_like(self.material.E)
-        args = (u, a, b)
-        frozen, frozen_args = jax.lax.stop_gradient((self, args))
-
-        def body(carry):
-            k, z, _ = carry
-            r, J = frozen.linearise(z, frozen_args)
-            dz = J.solve(r)
-            return k + 1, z - dz, jnp.max(jnp.abs(dz))
-
-        def cond(carry):
-            k, _, step = carry
-            return (k < max_steps) & (step > tol**0.5)
-
-        _, z, step = jax.lax.while_loop(cond, body, (0, jax.lax.stop_gradient(z0), jnp.inf))
-        z, step = checkpoint_name((z, step), "beam_newton")  # kept, not re-solved, by remat
-        _, J = frozen.linearise(z, frozen_args)
-        z = z - J.solve(self.residual(z, args))
-        return z, step <= tol**0.5
+        return _newton(self, (u, a, b), jax.lax.stop_gradient(z0), tol, max_steps)
 
     def shape(self, z):
         """Node coordinates (x, y) in m of the state z."""
@@ -325,6 +307,37 @@ class Beam(eqx.Module):
         x = jnp.concatenate([zero, jnp.cumsum(ds * jnp.cos(theta))])
         y = jnp.concatenate([zero, jnp.cumsum(ds * jnp.sin(theta))])
         return x, y
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4))
+def _newton(beam: Beam, args, z0, tol, max_steps):
+    """Newton iterations for `Beam.equilibrium`: (z, converged)."""
+
+    def body(carry):
+        k, z, _ = carry
+        r, J = beam.linearise(z, args)
+        dz = J.solve(r)
+        return k + 1, z - dz, jnp.max(jnp.abs(dz))
+
+    def cond(carry):
+        k, _, step = carry
+        return (k < max_steps) & (step > tol**0.5)
+
+    _, z, step = jax.lax.while_loop(cond, body, (0, z0, jnp.asarray(jnp.inf, z0.dtype)))
+    return z, step <= tol**0.5
+
+
+@_newton.defjvp
+def _newton_jvp(tol, max_steps, primals, tangents):
+    """The implicit-function theorem at the root: ż = −J⁻¹ (∂r/∂(beam, args)) · tangents.
+    The root is named "beam_newton" so that rematerialisation keeps it rather than
+    solving again (`nested_checkpoint_scan`)."""
+    beam, args, z0 = primals
+    d_beam, d_args, _ = tangents
+    z, converged = checkpoint_name(_newton(beam, args, z0, tol, max_steps), "beam_newton")
+    _, dr = jax.jvp(lambda bm, ar: bm.residual(z, ar), (beam, args), (d_beam, d_args))
+    _, J = beam.linearise(z, args)
+    return (z, converged), (-J.solve(dr), np.zeros((), jax.dtypes.float0))
 
 
 class NewtonMatrix(eqx.Module):
@@ -367,12 +380,13 @@ class NewtonMatrix(eqx.Module):
         return self.ds * jnp.concatenate([jnp.zeros(1), jnp.cumsum(dkappa)])
 
     def solve(self, r):
-        """δz with J δz = r."""
+        """δz with J δz = r (linear in r: the matrix's own pieces are solved separately)."""
         W = jnp.cumsum(self.lever)[:-1]
         A = jnp.diag(self.bending) + self.ds * jnp.tril(W[:, None] - W[None, :], -1)
-        K = jax.scipy.linalg.solve_triangular(A, jnp.stack([r[:-2], W, self.moment_P], axis=1), lower=True)
+        K_W, K_P = jax.scipy.linalg.solve_triangular(A, jnp.stack([W, self.moment_P], axis=1), lower=True).T
+        K_r = jax.scipy.linalg.solve_triangular(A, r[:-2], lower=True)
         # δθ = δθ_0 + angles(k_r − k_W δθ_0 − k_P δP̂): the constraint rows in (δθ_0, δP̂)
-        th_r, th_W, th_P = (self._angles(K[:, i]) for i in range(3))
+        th_r, th_W, th_P = (self._angles(k) for k in (K_r, K_W, K_P))
         ones = jnp.ones_like(self.lever)
         a11 = self.close @ (ones - th_W)
         a12 = self.close_P - self.close @ th_P
@@ -381,9 +395,9 @@ class NewtonMatrix(eqx.Module):
         f1 = r[-2] - self.close @ th_r
         f2 = r[-1] - self.chord @ th_r
         det = a11 * a22 - a12 * a21
-        d0 = (f1 * a22 - a12 * f2) / det
-        dP = (a11 * f2 - a21 * f1) / det
-        dkappa = K[:, 0] - K[:, 1] * d0 - K[:, 2] * dP
+        d0 = (a22 / det) * f1 - (a12 / det) * f2
+        dP = (a11 / det) * f2 - (a21 / det) * f1
+        dkappa = K_r - K_W * d0 - K_P * dP
         return jnp.concatenate([d0 + self._angles(dkappa), dP[None]])
 
 

@@ -60,8 +60,7 @@ def lumped_transport(cycle, p: Params, grid: Grid, beam_grid: BeamGrid, rule: st
         return _to_x(nodes, x_nodes, x_cells)
 
     C = p.lumping_C
-    zero = jnp.zeros(grid.shape)
     if rule == "dispersive":
         h_cm = p.thickness_mm / 10.0
-        return Transport(vx=zero, vy=zero, dispersion=C * h_cm * to_growth(cycle.mean_abs_vy))
-    return Transport(vx=C * to_growth(cycle.mean_vx), vy=C * to_growth(cycle.mean_vy), dispersion=zero)
+        return Transport(dispersion=C * h_cm * to_growth(cycle.mean_abs_vy))
+    return Transport(vx=C * to_growth(cycle.mean_vx), vy=C * to_growth(cycle.mean_vy))

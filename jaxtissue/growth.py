@@ -40,16 +40,20 @@ class State(eqx.Module):
 
 class Transport(eqx.Module):
     """Lumped transport of a conditioning cycle, frozen over a growth interval (§5):
-    cell-centred velocity (cm/s) and an added O2 dispersivity (cm²/s)."""
+    cell-centred velocity (cm/s) and an added O2 dispersivity (cm²/s). A part that is
+    None is absent (not computed with zeros): the dispersive rule has no velocity."""
 
-    vx: Field
-    vy: Field
-    dispersion: Field
+    vx: Field | None = None
+    vy: Field | None = None
+    dispersion: Field | None = None
+
+    def __check_init__(self):
+        if (self.vx is None) != (self.vy is None):
+            raise ValueError("Transport needs both velocity components vx and vy, or neither")
 
     @classmethod
     def none(cls, grid: Grid) -> "Transport":
-        z = jnp.zeros(grid.shape)
-        return cls(vx=z, vy=z, dispersion=z)
+        return cls()
 
 
 def o2_diffusivity(m, coeffs: Coefficients):
@@ -112,7 +116,7 @@ class GrowthModel(eqx.Module):
 
     def o2_diffusivity(self, m) -> Field:
         d = o2_diffusivity(m, self.coeffs)
-        if self.transport is not None:
+        if self.transport is not None and self.transport.dispersion is not None:
             d = d + self.transport.dispersion
         return d
 
@@ -122,7 +126,7 @@ class GrowthModel(eqx.Module):
         o, c, m = y.o, y.c, y.m
         # O2 (2.1)
         do = ops.diffusion(o, self.o2_diffusivity(m), dx, dy, k.o_ext) - o2_consumption(o, c, k)
-        if self.transport is not None:
+        if self.transport is not None and self.transport.vx is not None:
             do = do - ops.advection(
                 o, self.transport.vx, self.transport.vy, dx, dy, k.o_ext,
                 limited=self.advection == "limited",
@@ -139,7 +143,7 @@ class GrowthModel(eqx.Module):
         """The model whose Jacobian the implicit solver uses: first-order upwind
         advection, so that every coupling stays within the 5-point stencil that
         `linsolve` probes exactly (the limiter's wider stencil would alias)."""
-        if self.transport is None or self.advection == "upwind":
+        if self.transport is None or self.transport.vx is None or self.advection == "upwind":
             return self
         return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport)
 

@@ -163,43 +163,94 @@ class FivePoint(eqx.Module):
         return FivePointFactor(op=self, block_inverses=invs)
 
 
-def thomas_factor(sub, diag, sup):
+class Thomas(eqx.Module):
+    """Tridiagonal systems along the last axis, factored (`thomas_factor`): the bands
+    (`sub[..., 0]` and `sup[..., -1]` zero) and the elimination's pivots `inv` and
+    multipliers `c`, all stored row-major (the system's axis first)."""
+
+    sub: jax.Array
+    diag: jax.Array
+    sup: jax.Array
+    inv: jax.Array
+    c: jax.Array
+
+
+def _rows(x):
+    return jnp.moveaxis(x, -1, 0)
+
+
+def thomas_factor(sub, diag, sup) -> Thomas:
     """Thomas elimination of tridiagonal systems along the last axis (`sub[..., 0]` and
     `sup[..., -1]` are ignored), for `thomas_solve`: a `lax.scan` over the rows, each
     row one vector operation over the leading axes (no pivoting: for diagonally
-    dominant operators)."""
-    rows = lambda x: jnp.moveaxis(x, -1, 0)  # noqa: E731
+    dominant operators). The elimination itself is never differentiated: `thomas_solve`
+    carries the derivatives with respect to the bands."""
 
     def eliminate(c_prev, row):
         lower, d, upper = row
         inv = 1.0 / (d - lower * c_prev)
         return upper * inv, (inv, upper * inv)
 
-    lower = jnp.asarray(sub).at[..., 0].set(0.0)
-    upper = jnp.asarray(sup).at[..., -1].set(0.0)
-    diag = jnp.asarray(diag)
-    _, (inv, c) = jax.lax.scan(eliminate, jnp.zeros_like(diag[..., 0]), (rows(lower), rows(diag), rows(upper)))
-    return rows(lower), inv, c
+    lower = _rows(jnp.asarray(sub).at[..., 0].set(0.0))
+    upper = _rows(jnp.asarray(sup).at[..., -1].set(0.0))
+    diag = _rows(jnp.asarray(diag))
+    _, (inv, c) = jax.lax.scan(eliminate, jnp.zeros_like(diag[0]), jax.lax.stop_gradient((lower, diag, upper)))
+    return Thomas(sub=lower, diag=diag, sup=upper, inv=inv, c=c)
 
 
-def thomas_solve(factor, r):
-    """Solve the factored systems for right-hand sides `r` (same shape as `diag`)."""
-    lower, inv, c = factor
+def _sweeps(lower, inv, c, r):
+    """Forward elimination and back substitution with the factors (row-major)."""
 
     def forward(z_prev, row):
         ri, li, ii = row
         z = (ri - li * z_prev) * ii
         return z, z
 
-    rr = jnp.moveaxis(r, -1, 0)
-    _, z = jax.lax.scan(forward, jnp.zeros_like(rr[0]), (rr, lower, inv))
+    _, z = jax.lax.scan(forward, jnp.zeros_like(r[0]), (r, lower, inv))
 
     def backward(x_next, row):
         zi, ci = row
         x = zi - ci * x_next
         return x, x
 
-    _, x = jax.lax.scan(backward, jnp.zeros_like(rr[0]), (z, c), reverse=True)
+    _, x = jax.lax.scan(backward, jnp.zeros_like(r[0]), (z, c), reverse=True)
+    return x
+
+
+def _band_product(bands, x):
+    """The tridiagonal operator with (row-major) bands (sub, diag, sup) applied to x."""
+    sub, diag, sup = bands
+    z = jnp.zeros_like(x[:1])
+    return diag * x + sub * jnp.concatenate([z, x[:-1]]) + sup * jnp.concatenate([x[1:], z])
+
+
+@jax.custom_jvp
+def _thomas_solve(bands, factors, r):
+    return _sweeps(bands[0], *factors, r)
+
+
+def _thomas_solve_jvp(primals, tangents):
+    """x = A⁻¹ r: ẋ = A⁻¹ (ṙ − Ȧ x), one more solve with the same factors (reverse mode
+    transposes it: no derivative of the elimination is ever formed or stored). The
+    factors' tangents are ignored: they follow from the bands'."""
+    bands, factors, r = primals
+    dbands, _, dr = tangents
+    x = _sweeps(bands[0], *factors, r)
+    zero = lambda t: isinstance(t, jax.custom_derivatives.SymbolicZero)  # noqa: E731
+    if zero(dr) and all(map(zero, dbands)):
+        return x, jnp.zeros_like(x)
+    dA = tuple(jnp.zeros_like(x) if zero(d) else d for d in dbands)
+    rhs = (jnp.zeros_like(x) if zero(dr) else dr) - _band_product(dA, x)
+    return x, _sweeps(bands[0], *factors, rhs)
+
+
+_thomas_solve.defjvp(_thomas_solve_jvp, symbolic_zeros=True)
+
+
+def thomas_solve(factor: Thomas, r):
+    """Solve the factored systems for right-hand sides `r` (same shape as `diag`).
+    Differentiable in `r` and in the bands the factor was built from."""
+    x = _thomas_solve((factor.sub, factor.diag, factor.sup), (factor.inv, factor.c), _rows(r))
     return jnp.moveaxis(x, 0, -1)
 
 
@@ -214,7 +265,7 @@ class FivePointFactor(eqx.Module):
 
     op: FivePoint
     block_inverses: jax.Array | None
-    thomas: tuple | None = None
+    thomas: Thomas | None = None
     sweeps: int = eqx.field(static=True, default=1)
 
     def solve(self, r: Field) -> Field:
