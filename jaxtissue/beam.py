@@ -45,6 +45,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .linsolve import thomas_factor, thomas_solve
+from .remat import nested_checkpoint_scan
 from .params import Params
 
 GAMMA_W_PA_PER_M = 1000.0 * 9.81  # ρ_f g of the culture medium (MODEL.md §4)
@@ -440,24 +441,6 @@ def _seepage(beam: Beam, p):
     return vx, vy
 
 
-def nested_checkpoint_scan(step, init, length):
-    """`lax.scan(step, init, arange(length))` as √length chunks of √length steps, each
-    chunk rematerialised: a gradient stores √length carries and one chunk's
-    intermediates at a time, and the rematerialisation keeps the converged Newton
-    iterates (named "beam_newton") rather than solving again."""
-    inner = max(d for d in range(1, int(length**0.5) + 1) if length % d == 0)
-    outer = length // inner
-
-    keep = jax.checkpoint_policies.save_only_these_names("beam_newton")
-
-    @functools.partial(jax.checkpoint, policy=keep)
-    def chunk(carry, i):
-        return jax.lax.scan(step, carry, i * inner + jnp.arange(inner))
-
-    carry, hist = jax.lax.scan(chunk, init, jnp.arange(outer))
-    return carry, jax.tree_util.tree_map(lambda h: h.reshape((length,) + h.shape[2:]), hist)
-
-
 def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: bool = False, cycles: int = 1) -> CycleResult:
     """Solve one cycle of A.22 from rest (p = 0): implicit Euler, `steps_per_cycle`
     steps. With `cycles > 1` the loading repeats and the last cycle is reported (its
@@ -499,7 +482,8 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     z0 = beam.rest_state()
     zeros = jnp.zeros_like(mat.E)
     init = (z0, z0, z0, zeros, kappa0, dict(vx=zeros, vy=zeros, abs_vy=zeros))
-    (*_, sums), hist = nested_checkpoint_scan(step, init, n * cycles)
+    # a gradient keeps √n carries and the converged Newton iterates, not every step's
+    (*_, sums), hist = nested_checkpoint_scan(step, init, n * cycles, keep=("beam_newton",))
     hist = jax.tree_util.tree_map(lambda h: h[-n:], hist)
     zero = jnp.zeros(1)
     _, y_rest = beam.shape(z0)

@@ -16,6 +16,7 @@ from . import observables as obs
 from .grid import Grid
 from .growth import GrowthModel, State, has_cell_transport
 from .linsolve import line_sweeps
+from .remat import nested_checkpoint_scan
 from .params import Params, concrete_value, nondimensionalise
 from .beam import BeamGrid, loading_cycle
 from .coupling import RULES, beam_from_ecm, lumped_transport
@@ -120,6 +121,10 @@ class SolverOptions(eqx.Module):
     (`linsolve.line_sweeps`: 6 on the default 50 × 40 grid, 0 for cells shorter than
     h/3). Fewer sweeps approximate the step's Jacobian more coarsely (see
     `linsolve`): cheaper steps, possibly more of them."""
+    nest_intervals: bool = eqx.field(static=True, default=False)
+    """Flex runs: the reverse pass keeps ~√n of the n coupling intervals' states
+    instead of all n (`remat.nested_checkpoint_scan`), for one more forward pass:
+    for long runs or large grids where memory binds."""
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""
@@ -135,6 +140,8 @@ class SolverOptions(eqx.Module):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive integer")
         if self.o2_sweeps is not None and (not isinstance(self.o2_sweeps, int) or self.o2_sweeps < 0):
             raise ValueError(f"solver option o2_sweeps = {self.o2_sweeps!r} must be None or an integer >= 0")
+        if not isinstance(self.nest_intervals, bool):
+            raise ValueError(f"solver option nest_intervals = {self.nest_intervals!r} must be True or False")
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
 
@@ -325,6 +332,9 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         t0s, t1s = jnp.asarray(bounds[:-1]), jnp.asarray(bounds[1:])
         tes = jnp.clip(THREE_WEEKS_S, t0s, t1s)
 
+        k3 = int(np.searchsorted(bounds, THREE_WEEKS_S)) - 1 if extra else -1  # the interval holding 3 weeks
+
+        @jax.checkpoint
         def interval(y, k):
             t0, t1, te = t0s[k], t1s[k], tes[k]
             _, cycle = flex_cycle(y, params, protocol.at(t0), grid, beam_grid)
@@ -334,17 +344,26 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             series, states = sol.ys
             if progress:
                 jax.debug.callback(_Progress.tick, t1)
-            y1 = jtu.tree_map(lambda x: x[-1], states)
             out = dict(
-                series=series, extra_state=jtu.tree_map(lambda x: x[0], states),
-                post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain), steps=sol.stats["num_steps"],
-                code=jnp.where(cycle.failed, 2, _growth_code(sol)),
+                series=series, post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain),
+                steps=sol.stats["num_steps"], code=jnp.where(cycle.failed, 2, _growth_code(sol)),
             )
-            return y1, out
+            return jtu.tree_map(lambda x: x[0], states), jtu.tree_map(lambda x: x[-1], states), out
+
+        def step(carry, k):
+            y, y3 = carry
+            y_te, y1, out = interval(y, k)
+            y3 = jtu.tree_map(lambda a, b: jnp.where(k == k3, a, b), y_te, y3)  # kept outside the remat
+            return (y1, y3), out
 
         # each interval is rematerialised in the backward pass: memory holds one
-        # state per interval plus one interval's working set (beam.py nests further)
-        final, out = jax.lax.scan(jax.checkpoint(interval), y0, jnp.arange(len(bounds) - 1))
+        # state per interval (or ~√n of them, nested) plus one interval's working set
+        # (beam.py nests further); the state at 3 weeks rides in the carry
+        n_intervals = len(bounds) - 1
+        if options.nest_intervals:
+            (final, y3), out = nested_checkpoint_scan(step, (y0, y0), n_intervals)
+        else:
+            (final, y3), out = jax.lax.scan(step, (y0, y0), jnp.arange(n_intervals))
         start = _observe(0.0, y0, args)
         series = {k: jnp.concatenate([start[k][None], v[:, 1]]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
@@ -354,8 +373,6 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         first = jnp.argmax(codes > 0)
         code, t_fail = codes[first], jnp.concatenate([t0s, t1s[-1:]])[first]
         if extra:
-            k3 = int(np.searchsorted(bounds, THREE_WEEKS_S)) - 1
-            y3 = jtu.tree_map(lambda x: x[k3], out["extra_state"])
             _, cycle3 = flex_cycle(y3, params, protocol.at(THREE_WEEKS_S), grid, beam_grid)
             at3 = {k: v[k3, 0] for k, v in out["series"].items()}
             at3["post_force_max_N"] = cycle3.post_force_max_N

@@ -116,3 +116,18 @@ def test_gradient_through_the_staggered_run(gradients, name):
     fd = (at(value + h) - at(value - h)) / (2 * h)
     ad = float(getattr(gradients[1] if on_protocol else gradients[0], name))
     assert ad == pytest.approx(fd, rel=1e-3), (name, ad, fd)
+
+
+def test_nested_interval_checkpoints_give_the_same_gradient(gradients):
+    """`SolverOptions(nest_intervals=True)` keeps ~√n interval states in the reverse
+    pass: the same arithmetic, so the same gradient to round-off."""
+    nested = dict(GRAD, options=jt.SolverOptions(fixed_steps=10, dt0_s=5.0, nest_intervals=True))
+    p = jax.tree_util.tree_map(jnp.asarray, P)
+    q = jax.tree_util.tree_map(jnp.asarray, jt.Protocol.flex())
+    g = jax.jit(jax.grad(lambda p, q: jt.simulate(p, q, t_end_s=jt.THREE_WEEKS_S, **nested).collagen_mg_per_g[-1], argnums=(0, 1)))(p, q)
+    # as elasticities ∂collagen/∂ln(value), on one scale (some derivatives are ~0)
+    values = jax.tree_util.tree_leaves((p, q))
+    flat, nest = (np.array([float(gi * v) for gi, v in zip(jax.tree_util.tree_leaves(x), values)]) for x in (gradients, g))
+    np.testing.assert_allclose(nest, flat, rtol=1e-9, atol=1e-12 * np.abs(flat).max())
+    with pytest.raises(ValueError, match=r"nest_intervals = 1 must be True or False"):
+        jt.SolverOptions(nest_intervals=1)
