@@ -73,7 +73,7 @@ def _steady_2d(nx, ny, limited=True):
     y0 = State(o=0.2 * jnp.ones(grid.shape), c=jnp.ones(grid.shape), m=jnp.asarray(m * np.ones(grid.shape)))
     ts = jnp.array([0.0, 3.0e5])
     sol = growth_solve(model, y0, 0.0, 3.0e5, ts, STEADY, (p, grid))
-    return np.asarray(sol.ys[1].o[-1])
+    return np.asarray(sol.ys.o[-1])
 
 
 def test_2d_steady_o2_with_flow_converges_at_second_order():
