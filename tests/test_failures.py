@@ -2,6 +2,7 @@
 simulated time reached and a hint, and nothing is written as if they had succeeded."""
 
 import numpy as np
+import pytest
 
 import jaxtissue as jt
 from jaxtissue.beam import BeamGrid
@@ -38,6 +39,17 @@ def test_beam_non_convergence_is_reported(tmp_path, capsys):
     out = tmp_path / "c"
     assert main(["cycle", "--post-displacement", "24", "--steps", "8", "--segments", "8", "--ny", "8", "--out", str(out)]) == 1
     assert "did not converge" in one_error_line(capsys) and not out.exists()
+
+
+def test_post_displacement_is_bounded_by_the_strip_in_the_parameters():
+    """A protocol knows no strip: its displacement is checked against `length_mm`."""
+    protocol = jt.Protocol.flex(post_displacement_mm=30.0)
+    with pytest.raises(ValueError, match=r"post_displacement_mm = 30 must be below the strip length 25 mm"):
+        jt.simulate(jt.paper_parameters(), protocol, 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 16))
+    with pytest.raises(ValueError, match=r"post_displacement_mm = -1 must be >= 0 mm"):
+        jt.Protocol.flex(post_displacement_mm=-1.0)
+    long = jt.simulate(jt.paper_parameters().replace(length_mm=40.0), protocol, 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 16))
+    assert float(long.post_force_max_N[-1]) > 0
 
 
 def test_concentrations_out_of_bounds_are_reported(tmp_path, capsys):
