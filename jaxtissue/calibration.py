@@ -260,9 +260,11 @@ def jacobian_once(residual):
     return fn
 
 
-def _lm(problem: Problem, max_steps: int, pinned: bool):
-    """An LM solve from u0 (optionally with free parameter `i` pinned at t_i)."""
-    solver = optx.LevenbergMarquardt(rtol=problem.fit.rtol, atol=problem.fit.rtol)  # Cauchy termination
+def _lm(problem: Problem, max_steps: int, pinned: bool, verbose=None):
+    """An LM solve from u0 (optionally with free parameter `i` pinned at t_i).
+    `verbose`: optimistix's per-step callback (the benchmark records χ² with it)."""
+    extra = {} if verbose is None else dict(verbose=verbose)
+    solver = optx.LevenbergMarquardt(rtol=problem.fit.rtol, atol=problem.fit.rtol, **extra)  # Cauchy termination
 
     def residual(u, args):
         t = problem.t_from_u(u)
