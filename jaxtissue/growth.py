@@ -102,7 +102,7 @@ class GrowthModel(eqx.Module):
 
     coeffs: Coefficients
     grid: Grid
-    transport: Transport | None = None
+    transport: Transport = eqx.field(default_factory=Transport)
     advection: str = eqx.field(static=True, default="limited")
     cell_transport: bool = eqx.field(static=True, default=True)
 
@@ -116,7 +116,7 @@ class GrowthModel(eqx.Module):
 
     def o2_diffusivity(self, m) -> Field:
         d = o2_diffusivity(m, self.coeffs)
-        if self.transport is not None and self.transport.dispersion is not None:
+        if self.transport.dispersion is not None:
             d = d + self.transport.dispersion
         return d
 
@@ -126,7 +126,7 @@ class GrowthModel(eqx.Module):
         o, c, m = y.o, y.c, y.m
         # O2 (2.1)
         do = ops.diffusion(o, self.o2_diffusivity(m), dx, dy, k.o_ext) - o2_consumption(o, c, k)
-        if self.transport is not None and self.transport.vx is not None:
+        if self.transport.vx is not None:
             do = do - ops.advection(
                 o, self.transport.vx, self.transport.vy, dx, dy, k.o_ext,
                 limited=self.advection == "limited",
@@ -143,7 +143,7 @@ class GrowthModel(eqx.Module):
         """The model whose Jacobian the implicit solver uses: first-order upwind
         advection, so that every coupling stays within the 5-point stencil that
         `linsolve` probes exactly (the limiter's wider stencil would alias)."""
-        if self.transport is None or self.transport.vx is None or self.advection == "upwind":
+        if self.transport.vx is None or self.advection == "upwind":
             return self
         return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport)
 

@@ -340,7 +340,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         t0s, t1s = jnp.asarray(bounds[:-1]), jnp.asarray(bounds[1:])
         tes = jnp.clip(THREE_WEEKS_S, t0s, t1s)
 
-        k3 = int(np.searchsorted(bounds, THREE_WEEKS_S)) - 1 if extra else -1  # the interval holding 3 weeks
+        k3 = int(np.searchsorted(bounds, THREE_WEEKS_S)) - 1 if extra else None  # the interval holding 3 weeks
 
         @jax.checkpoint
         def interval(y, k):
@@ -362,7 +362,8 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         def step(carry, k):
             y, y3 = carry
             y_te, y1, out = interval(y, k)
-            y3 = jtu.tree_map(lambda a, b: jnp.where(k == k3, a, b), y_te, y3)  # kept outside the remat
+            if extra:  # the state at 3 weeks, kept outside the remat
+                y3 = jtu.tree_map(lambda a, b: jnp.where(k == k3, a, b), y_te, y3)
             return (y1, y3), out
 
         # each interval is rematerialised in the backward pass: memory holds one
@@ -370,9 +371,9 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         # (beam.py nests further); the state at 3 weeks rides in the carry
         n_intervals = len(bounds) - 1
         if options.nest_intervals:
-            (final, y3), out = nested_checkpoint_scan(step, (y0, y0), n_intervals)
+            (final, y3), out = nested_checkpoint_scan(step, (y0, y0 if extra else None), n_intervals)
         else:
-            (final, y3), out = jax.lax.scan(step, (y0, y0), jnp.arange(n_intervals))
+            (final, y3), out = jax.lax.scan(step, (y0, y0 if extra else None), jnp.arange(n_intervals))
         start = _observe(y0, args)
         series = {k: jnp.concatenate([start[k][None], v[:, 1]]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
