@@ -7,6 +7,7 @@ import pathlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import jaxtissue as jt
@@ -224,3 +225,27 @@ def test_jacobian_once_is_forward_mode_and_its_linear_map_a_matrix_product():
     assert jax.vmap(lambda s: wrapped(u, s))(jnp.array([3.0, 4.0])).shape == (2, 3)  # args may be traced
     with pytest.raises(NotImplementedError, match="with respect to u only"):
         jax.jvp(lambda s: wrapped(u, s), (3.0,), (1.0,))
+
+
+def test_levenberg_marquardt_reaches_an_optimum_on_a_bound_and_stops():
+    """Rosenbrock residuals (10(t₁ − t₀²), 1 − t₀) in the box t₀ ≤ 0.5: the optimum is
+    on the bound, (0.5, 0.25), where χ² = 0.25 stays > 0; the bounded coordinates reach
+    it at a finite u, and the solve stops there by itself."""
+    lo, hi = jnp.array([-2.0, -1.0]), jnp.array([0.5, 3.0])
+
+    def residual(u, args):
+        t = cal.box_from_free(u, lo, hi)
+        return jnp.stack([10 * (t[1] - t[0] ** 2), 1 - t[0]])
+
+    solver = cal.LevenbergMarquardt(rtol=1e-8, atol=1e-8, ftol=1e-10)
+    u0 = cal.free_from_box(jnp.array([-1.2, 1.0]), lo, hi)
+    sol = optx.least_squares(residual, solver, u0, max_steps=100, throw=False)
+    assert sol.result == optx.RESULTS.successful
+    assert int(sol.stats["num_steps"]) < 80  # optimistix's own test alone: 96; a logistic map: never
+    np.testing.assert_allclose(cal.box_from_free(sol.value, lo, hi), [0.5, 0.25], atol=1e-6)
+    # the box map: anywhere in u lands inside; its inverse from inside and from a bound
+    u = jnp.linspace(-10, 10, 101)[:, None] * jnp.ones(2)
+    t = jax.vmap(lambda v: cal.box_from_free(v, lo, hi))(u)
+    assert bool(jnp.all((t >= lo) & (t <= hi)))
+    np.testing.assert_allclose(cal.box_from_free(cal.free_from_box(jnp.array([0.1, 2.0]), lo, hi), lo, hi), [0.1, 2.0], rtol=1e-12)
+    assert float(jnp.cos(cal.free_from_box(lo, lo, hi)[0])) > 1e-3  # a start on a bound can move
