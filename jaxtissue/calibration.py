@@ -88,6 +88,7 @@ class ModelSettings:
     coupling_interval_s: float = 1.8144e5  # 3 weeks / 10: 3-week values within 0.05 % of T_g = 2e4 s
     rtol: float = 1e-6
     atol: float = 1e-9
+    nest_intervals: bool = False  # reverse-mode gradients (protocol optimisation): SolverOptions.nest_intervals
 
     def grid(self, regime: str) -> Grid:
         return Grid(nx=1 if regime == "static" else self.flex_nx, ny=self.ny)
@@ -96,7 +97,7 @@ class ModelSettings:
         return BeamGrid(n_segments=self.beam_segments, steps_per_cycle=self.beam_steps_per_cycle)
 
     def options(self) -> SolverOptions:
-        return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff="forward")
+        return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff="forward", nest_intervals=self.nest_intervals)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -446,7 +447,10 @@ def _settings(cls, table, where, section):
         if k not in fields:
             raise InputError(f"{where}: unknown key {k!r} in [{section}]; {suggest(k, fields)}")
         default = fields[k].default
-        if isinstance(default, int) and not isinstance(default, bool):
+        if isinstance(default, bool):
+            if not isinstance(v, bool):
+                raise InputError(f"{where}: [{section}] {k} = {v!r} must be true or false")
+        elif isinstance(default, int):
             ok = isinstance(v, int) and not isinstance(v, bool) and v >= (0 if k == "seed" else 1)
             need = "an integer >= 0" if k == "seed" else "a positive integer"
             if not ok:

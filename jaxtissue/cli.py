@@ -112,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--regime", choices=["static", "flex"], default="static", help="culture regime (default: static)")
     n.add_argument("--t-end", type=_positive_float, default=1.8144e6, metavar="S", help="time of the outputs in s (default 3 weeks)")
     n.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid (default 1 40 static, 50 40 flex)")
+    n.add_argument("--nest-intervals", action="store_true",
+                   help="flex: the reverse pass keeps ~sqrt(n) of the n growth intervals' states, for one more forward pass (less memory)")
     _flex_arguments(n)
     _parameter_arguments(n)
     _output_arguments(n)
@@ -395,13 +397,13 @@ def cmd_sweep(args) -> int:
 def cmd_sensitivity(args) -> int:
     from . import io, plots, sweep
     from .grid import Grid
-    from .simulate import Protocol
+    from .simulate import Protocol, SolverOptions
 
     params = load_params(args)
     protocol = _flex_protocol(args) if args.regime == "flex" else Protocol.static()
     io.check_output_folder(args.out, args.overwrite)
     grid = None if args.grid is None else Grid(*args.grid)
-    table = sweep.sensitivities(params, protocol, args.t_end, grid=grid)
+    table = sweep.sensitivities(params, protocol, args.t_end, grid=grid, options=SolverOptions(nest_intervals=args.nest_intervals))
     names = list(next(iter(table.values())))
     print(f"d ln(output)/d ln(parameter) at t = {args.t_end:g} s, {args.regime} culture")
     print(f"{'parameter':22s}" + "".join(f"{k:>20s}" for k in table))

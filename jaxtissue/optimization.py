@@ -239,7 +239,7 @@ class Design:
         m = self.model
         protocol = self.protocol(theta)
         result = simulate(self.params, protocol, self.t_end_s, m.grid("flex"), coupling_interval_s=m.coupling_interval_s,
-                          beam=m.beam(), options=SolverOptions(rtol=m.rtol, atol=m.atol, autodiff=autodiff))
+                          beam=m.beam(), options=SolverOptions(rtol=m.rtol, atol=m.atol, autodiff=autodiff, nest_intervals=m.nest_intervals))
         dose = conditioning_dose(protocol, interval_bounds(self.t_end_s, m.coupling_interval_s))
         J = OBJECTIVES[self.objective].fn(result, dose)
         values = jnp.stack([CONSTRAINTS[n].value(result) for n in self.constraints]) if self.constraints else jnp.zeros(0)

@@ -165,6 +165,7 @@ BAD = [
     ("objective = \"total_collagen\"\nparameters = \"missing.toml\"", "no such parameter file"),
     ("objective = \"total_collagen\"\n[parameters]\nk_m0 = -1.0", "k_m0"),
     ("objective = \"total_collagen\"\nsteps = 3", "unknown key 'steps'"),
+    ("objective = \"total_collagen\"\n[model]\nnest_intervals = \"yes\"", "nest_intervals = 'yes' must be true or false"),
 ]
 
 
@@ -175,6 +176,12 @@ def test_bad_problem_files_give_one_line_and_exit_2(tmp_path, capsys, body, mess
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err and str(problem) in err
     assert not (tmp_path / "o").exists()
+
+
+def test_model_table_can_nest_the_interval_checkpoints(tmp_path):
+    design = opt.read_design(write_problem(tmp_path, PROBLEM.replace("[model]", "[model]\nnest_intervals = true")))
+    assert design.model.nest_intervals is True
+    assert opt.read_design(write_problem(tmp_path, PROBLEM, "q.toml")).model.nest_intervals is False
 
 
 def test_shipped_problem_files_are_valid():

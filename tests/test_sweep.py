@@ -194,7 +194,7 @@ def test_sensitivities_match_finite_differences():
 @pytest.mark.slow
 def test_sensitivity_command(tmp_path, capsys):
     out = tmp_path / "s"
-    assert main(["sensitivity", "--grid", "1", "12", "--out", str(out)]) == 0
+    assert main(["sensitivity", "--grid", "1", "12", "--nest-intervals", "--out", str(out)]) == 0
     assert (out / "sensitivity.json").exists() and (out / "sensitivity.png").exists()
     assert "k_m0" in capsys.readouterr().out
 
