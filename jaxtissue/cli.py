@@ -147,13 +147,18 @@ def _flex_arguments(parser):
     parser.add_argument("--pins", choices=["centroid", "bottom"], default="centroid", help="where the posts pin the strip (default centroid)")
 
 
+_PROTOCOL_FLAGS = {"period_s": "--period", "post_displacement_mm": "--post-displacement", "hold_fraction": "--hold-fraction"}
+
+
 def _flex_protocol(args):
-    from .simulate import Protocol
+    from .simulate import Protocol, ProtocolValueError
 
     try:
         return Protocol.flex(args.period, args.post_displacement, args.hold_fraction, getattr(args, "lumping", "dispersive"), args.pins)
+    except ProtocolValueError as err:
+        raise InputError(f"{_PROTOCOL_FLAGS[err.field]} = {err.value:g} must be {err.allowed}") from None
     except ValueError as err:
-        raise InputError(str(err).replace("protocol post_displacement_mm", "--post-displacement").replace("protocol hold_fraction", "--hold-fraction").replace("protocol period_s", "--period")) from None
+        raise InputError(str(err)) from None
 
 
 def cmd_params(args) -> int:

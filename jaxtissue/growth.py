@@ -51,10 +51,6 @@ class Transport(eqx.Module):
         if (self.vx is None) != (self.vy is None):
             raise ValueError("Transport needs both velocity components vx and vy, or neither")
 
-    @classmethod
-    def none(cls, grid: Grid) -> "Transport":
-        return cls()
-
 
 def o2_diffusivity(m, coeffs: Coefficients):
     """D_o(m) of the Chang unit cell (A.4, as reconstructed in MODEL.md §2), cm²/s."""

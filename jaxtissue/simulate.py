@@ -26,6 +26,15 @@ THREE_WEEKS_S = 1.8144e6
 """The experiments' assay time, 21 days (MODEL.md §6)."""
 
 
+class ProtocolValueError(ValueError):
+    """A protocol field out of its range, with `field`, `value` and `allowed` for callers
+    that name the field their own way (the command line's flags)."""
+
+    def __init__(self, field: str, value: float, allowed: str):
+        super().__init__(f"protocol {field} = {value:g} must be {allowed}")
+        self.field, self.value, self.allowed = field, value, allowed
+
+
 class Protocol(eqx.Module):
     """A culture protocol (MODEL.md §1, §4, §5).
 
@@ -64,7 +73,7 @@ class Protocol(eqx.Module):
             value = concrete_value(getattr(self, name))
             if value is not None and not (np.all(np.isfinite(value)) and np.all(ok(value))):
                 bad = np.ravel(value)[~np.ravel(np.isfinite(value) & ok(np.where(np.isfinite(value), value, 0)))][0]
-                raise ValueError(f"protocol {name} = {bad:g} must be {allowed}")
+                raise ProtocolValueError(name, float(bad), allowed)
         if self.stage_length_s is not None:
             if not (isinstance(self.stage_length_s, (int, float)) and math.isfinite(self.stage_length_s) and self.stage_length_s > 0):
                 raise ValueError(f"protocol stage_length_s = {self.stage_length_s!r} must be a positive number of seconds")

@@ -73,6 +73,7 @@ def test_input_mistakes_name_the_field_and_exit_2(tmp_path, capsys):
         (["simulate", "--set", "o_mm=0.5", "--out", out], "did you mean 'o_m'?"),
         (["simulate", "--set", "o_m=1.5", "--out", out], "o_m = 1.5 is outside its allowed range (0, 1)"),
         (["simulate", "--regime", "flex", "--hold-fraction", "0.3", "--out", out], "--hold-fraction = 0.3 must be in [0, 0.25)"),
+        (["simulate", "--regime", "flex", "--post-displacement", "-1", "--out", out], "--post-displacement = -1 must be >= 0 mm"),
         (["simulate", "--resume", out], "no interrupted run there"),
     ]
     for argv, message in cases:
