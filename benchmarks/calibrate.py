@@ -46,10 +46,10 @@ def main():
     # jaxtissue: the LM of `calibration.fit`, the χ² of each point it evaluates recorded
     # with a host timestamp (as SciPy's evaluations are below)
     record = []
-    solve = cal._lm(problem, problem.fit.max_steps, pinned=False,
+    solve = cal._lm(problem, problem.fit.max_steps,
                     verbose=lambda **kw: jax.debug.callback(lambda c: record.append((time.perf_counter(), 2 * float(c))),
                                                             kw["loss_this_step"][1]))
-    lm = jax.jit(lambda u0: solve(u0, None))
+    lm = jax.jit(lambda u0: solve(u0, cal._free(problem.fit.max_steps)))
     t0 = time.perf_counter()
     jax.block_until_ready(lm(problem.u_from_t(jnp.asarray(starts[0]))))
     print(f"jaxtissue: compile + first fit {time.perf_counter() - t0:.1f} s")

@@ -235,11 +235,22 @@ def _compiled(problem: Problem, jacobian: bool):
 
 
 @functools.lru_cache(maxsize=8)
-def _solver(problem: Problem, batched: bool, pinned: bool):
-    """The compiled LM solve of a problem (cached: repeated fits do not recompile)."""
+def _solver(problem: Problem, batch: int):
+    """The problem's compiled LM solve (`_lm`) for `batch` starts at a time (cached: the
+    fit and the profiles' points share it, and repeated fits do not recompile)."""
     s = problem.fit
-    solve = _lm(problem, s.profile_max_steps if pinned else s.max_steps, pinned)
-    return jax.jit(jax.vmap(solve, in_axes=(0, None)) if batched else solve)
+    return jax.jit(jax.vmap(_lm(problem, max(s.max_steps, s.profile_max_steps)), in_axes=(0, None)))
+
+
+def _pin(i: int, t_i: float, max_steps: int):
+    """`_lm`'s args: free parameter i pinned at t_i (i = −1: none), at most `max_steps`
+    steps (typed alike for every call, so that the compiled solve is reused)."""
+    return (np.asarray(i, np.int64), np.asarray(t_i, np.float64), np.asarray(max_steps, np.int64))
+
+
+def _free(max_steps: int):
+    """`_lm`'s args for a fit of every free parameter."""
+    return _pin(-1, 0.0, max_steps)
 
 
 def jacobian_once(residual):
@@ -277,13 +288,17 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
     """optimistix's Levenberg–Marquardt, which also stops (as SciPy's `ftol`) after an
     accepted step that lowers χ² by less than `ftol` χ² and by at least a quarter of
     the linearised model's prediction, so the model is trusted there: in a flat valley
-    the Cauchy test (small steps in u and in r) can take many steps to pass."""
+    the Cauchy test (small steps in u and in r) can take many steps to pass. With
+    `cap_steps`, `args[-1]` caps the steps below `max_steps` (a dynamic limit, so that
+    one compiled solve serves several; reaching it ends the solve as not converged)."""
 
     ftol: float
+    cap_steps: bool
 
-    def __init__(self, rtol: float, atol: float, ftol: float, verbose=False):
+    def __init__(self, rtol: float, atol: float, ftol: float, verbose=False, cap_steps: bool = False):
         super().__init__(rtol=rtol, atol=atol, verbose=verbose)
         self.ftol = ftol
+        self.cap_steps = cap_steps
 
     def step(self, fn, y, args, options, state, tags):
         y_new, new, aux = super().step(fn, y, args, options, state, tags)
@@ -293,21 +308,25 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
         predicted = chi2_0 - jnp.sum((r0 + state.f_info.jac.mv(y_new - y)) ** 2)
         actual = chi2_0 - chi2_1
         flat = accepted & (actual <= self.ftol * chi2_1) & (actual >= 0.25 * predicted)
-        return y_new, eqx.tree_at(lambda s: s.terminate, new, new.terminate | flat), aux
+        terminate, result = new.terminate | flat, new.result
+        if self.cap_steps:
+            capped = ~terminate & (new.num_steps >= args[-1])
+            terminate = terminate | capped
+            result = optx.RESULTS.where(capped, optx.RESULTS.max_steps_reached, result)
+        return y_new, eqx.tree_at(lambda s: (s.terminate, s.result), new, (terminate, result)), aux
 
 
-def _lm(problem: Problem, max_steps: int, pinned: bool, verbose=None):
-    """An LM solve from u0 (optionally with free parameter `i` pinned at t_i).
-    `verbose`: optimistix's per-step callback (the benchmark records χ² with it)."""
+def _lm(problem: Problem, max_steps: int, verbose=None):
+    """An LM solve `solve(u0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
+    with free parameter i pinned at t_i (i = −1: none pinned). `verbose`: optimistix's
+    per-step callback (the benchmark records χ² with it)."""
     tol = problem.fit.rtol
-    solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, verbose=False if verbose is None else verbose)
+    solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, verbose=False if verbose is None else verbose, cap_steps=True)
 
     def residual(u, args):
+        i, t_i, _ = args
         t = problem.t_from_u(u)
-        if pinned:
-            i, t_i = args
-            t = t.at[i].set(t_i)
-        return problem.residuals(t)
+        return problem.residuals(jnp.where(jnp.arange(t.shape[0]) == i, t_i, t))
 
     def solve(u0, args):
         sol = optx.least_squares(jacobian_once(residual), solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
@@ -321,12 +340,12 @@ def fit(problem: Problem, progress=None) -> FitResult:
     """Multi-start Levenberg–Marquardt; `progress(n)` is called after each batch."""
     s = problem.fit
     starts = latin_hypercube(problem, s.starts, s.seed)
-    solve = _solver(problem, batched=True, pinned=False)
+    solve = _solver(problem, s.batch)
     ends, chi2, steps, ok = [], [], [], []
     for b in range(0, len(starts), s.batch):
         u0 = problem.u_from_t(jnp.asarray(starts[b : b + s.batch]))
         pad = s.batch - u0.shape[0]  # keep one compiled batch shape
-        u, c, n, conv = solve(jnp.concatenate([u0, jnp.repeat(u0[-1:], pad, axis=0)]), None)
+        u, c, n, conv = solve(jnp.concatenate([u0, jnp.repeat(u0[-1:], pad, axis=0)]), _free(s.max_steps))
         keep = slice(0, u0.shape[0])
         ends.append(np.asarray(problem.t_from_u(u[keep])))
         chi2.append(np.asarray(c[keep]))
@@ -391,8 +410,8 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
     others re-optimised from the previous point."""
     s = problem.fit
     lo, hi = (np.asarray(b) for b in problem.t_bounds())
-    solve = _solver(problem, batched=False, pinned=True)
-    u_best = problem.u_from_t(jnp.asarray(best.t))
+    solve = _solver(problem, 1)  # the fit's own when its batch is 1
+    u_best = problem.u_from_t(jnp.asarray(best.t))[None]
     level = best.chi2 + CHI2_95
     out = []
     for i, f in enumerate(problem.free):
@@ -404,9 +423,9 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
             xs, ys, u = [best.t[i]], [best.chi2], u_best
             for k in range(1, s.profile_points + 1):
                 x = best.t[i] + direction * span * k / s.profile_points
-                u, c, _, _ = solve(u, (i, jnp.asarray(x)))
+                u, c, _, _ = solve(u, _pin(i, x, s.profile_max_steps))
                 xs.append(x)
-                ys.append(float(c) if np.isfinite(float(c)) else np.inf)
+                ys.append(float(c[0]) if np.isfinite(float(c[0])) else np.inf)
                 if progress is not None:
                     progress(1)
                 if ys[-1] > level + 2 * CHI2_95:

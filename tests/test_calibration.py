@@ -249,3 +249,23 @@ def test_levenberg_marquardt_reaches_an_optimum_on_a_bound_and_stops():
     assert bool(jnp.all((t >= lo) & (t <= hi)))
     np.testing.assert_allclose(cal.box_from_free(cal.free_from_box(jnp.array([0.1, 2.0]), lo, hi), lo, hi), [0.1, 2.0], rtol=1e-12)
     assert float(jnp.cos(cal.free_from_box(lo, lo, hi)[0])) > 1e-3  # a start on a bound can move
+
+
+def test_levenberg_marquardt_step_cap_is_an_argument():
+    """One compiled solve serves fits and profile points with different step limits:
+    with `cap_steps`, the last of `args` caps the steps (reported as not converged)."""
+    solver = cal.LevenbergMarquardt(rtol=1e-8, atol=1e-8, ftol=1e-10, cap_steps=True)
+
+    def residual(u, args):
+        return jnp.stack([10 * (u[1] - u[0] ** 2), 1 - u[0]])
+
+    @jax.jit
+    def solve(cap):
+        sol = optx.least_squares(residual, solver, jnp.array([-1.2, 1.0]), (cap,), max_steps=100, throw=False)
+        return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+    _, steps, ok = solve(np.asarray(5, np.int64))
+    assert int(steps) == 5 and not bool(ok)
+    value, steps, ok = solve(np.asarray(100, np.int64))
+    assert bool(ok) and int(steps) < 100
+    np.testing.assert_allclose(value, [1.0, 1.0], atol=1e-6)
