@@ -57,7 +57,7 @@ def main():
     def lm_fit(x0):
         record.clear()
         t0 = time.perf_counter()
-        u, chi2, steps, ok = jax.block_until_ready(lm(problem.u_from_t(jnp.asarray(x0))))
+        u, chi2, steps, ok, _ = jax.block_until_ready(lm(problem.u_from_t(jnp.asarray(x0))))
         return dict(x=np.asarray(problem.t_from_u(u)), chi2=float(chi2), seconds=time.perf_counter() - t0, t0=t0,
                     record=list(record), evaluations=int(steps), note=f"{int(steps)} LM steps, converged: {bool(ok)}")
 

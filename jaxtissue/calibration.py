@@ -226,6 +226,7 @@ class FitResult(NamedTuple):
     steps_all: np.ndarray  # LM steps per start
     converged_all: np.ndarray
     model_evaluations: int  # residual + Jacobian evaluations, all starts
+    jacobian: np.ndarray  # ∂r/∂t at the best end, from its last LM step
 
 
 @functools.lru_cache(maxsize=8)
@@ -318,7 +319,8 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
 
 def _lm(problem: Problem, max_steps: int, verbose=None):
     """An LM solve `solve(u0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
-    with free parameter i pinned at t_i (i = −1: none pinned). `verbose`: optimistix's
+    with free parameter i pinned at t_i (i = −1: none pinned): (u, χ², steps, converged,
+    ∂r/∂t at u). `verbose`: optimistix's
     per-step callback (the benchmark records χ² with it)."""
     tol = problem.fit.rtol
     solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, verbose=False if verbose is None else verbose, cap_steps=True)
@@ -331,7 +333,11 @@ def _lm(problem: Problem, max_steps: int, verbose=None):
     def solve(u0, args):
         sol = optx.least_squares(jacobian_once(residual), solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
         r = residual(sol.value, args)
-        return sol.value, jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+        # ∂r/∂t at the end from ∂r/∂u of its last accepted step: dt/du = (hi − lo) cos(u)/2
+        # is a nonzero factor per column (cos u ≠ 0 in floating point), divided out exactly
+        lo, hi = problem.t_bounds()
+        jac = sol.state.f_info.jac.as_matrix() / ((hi - lo) * jnp.cos(sol.value) / 2)
+        return sol.value, jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful, jac
 
     return solve
 
@@ -341,25 +347,26 @@ def fit(problem: Problem, progress=None) -> FitResult:
     s = problem.fit
     starts = latin_hypercube(problem, s.starts, s.seed)
     solve = _solver(problem, s.batch)
-    ends, chi2, steps, ok = [], [], [], []
+    ends, chi2, steps, ok, jac = [], [], [], [], []
     for b in range(0, len(starts), s.batch):
         u0 = problem.u_from_t(jnp.asarray(starts[b : b + s.batch]))
         pad = s.batch - u0.shape[0]  # keep one compiled batch shape
-        u, c, n, conv = solve(jnp.concatenate([u0, jnp.repeat(u0[-1:], pad, axis=0)]), _free(s.max_steps))
+        u, c, n, conv, J = solve(jnp.concatenate([u0, jnp.repeat(u0[-1:], pad, axis=0)]), _free(s.max_steps))
         keep = slice(0, u0.shape[0])
         ends.append(np.asarray(problem.t_from_u(u[keep])))
         chi2.append(np.asarray(c[keep]))
         steps.append(np.asarray(n[keep]))
         ok.append(np.asarray(conv[keep]))
+        jac.append(np.asarray(J[keep]))
         if progress is not None:
             progress(u0.shape[0])
-    ends, chi2, steps, ok = (np.concatenate(a) for a in (ends, chi2, steps, ok))
+    ends, chi2, steps, ok, jac = (np.concatenate(a) for a in (ends, chi2, steps, ok, jac))
     chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
     best = int(np.argmin(chi2))
     return FitResult(
         t=ends[best], values=np.asarray(problem.values_from_t(jnp.asarray(ends[best]))), chi2=float(chi2[best]),
         starts_t=starts, ends_t=ends, chi2_all=chi2, steps_all=steps, converged_all=ok,
-        model_evaluations=int(np.sum(steps) + len(starts)),
+        model_evaluations=int(np.sum(steps) + len(starts)), jacobian=jac[best],
     )
 
 
@@ -376,9 +383,10 @@ class Fisher(NamedTuple):
     correlation: np.ndarray
 
 
-def fisher(problem: Problem, t) -> Fisher:
-    """Laplace approximation at t: Σ_t = (JᵀJ)⁺ with the exact J = ∂r/∂t."""
-    J = np.asarray(_compiled(problem, jacobian=True)(jnp.asarray(t)))
+def fisher(problem: Problem, t, jacobian=None) -> Fisher:
+    """Laplace approximation at t: Σ_t = (JᵀJ)⁺ with the exact J = ∂r/∂t (`jacobian`,
+    e.g. the fit's own at its optimum, or computed here)."""
+    J = np.asarray(_compiled(problem, jacobian=True)(jnp.asarray(t)) if jacobian is None else jacobian)
     cov = np.linalg.pinv(J.T @ J)
     se_t = np.sqrt(np.maximum(np.diag(cov), 0.0))
     values = np.asarray(problem.values_from_t(jnp.asarray(t)))
@@ -423,7 +431,7 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
             xs, ys, u = [best.t[i]], [best.chi2], u_best
             for k in range(1, s.profile_points + 1):
                 x = best.t[i] + direction * span * k / s.profile_points
-                u, c, _, _ = solve(u, _pin(i, x, s.profile_max_steps))
+                u, c, *_ = solve(u, _pin(i, x, s.profile_max_steps))
                 xs.append(x)
                 ys.append(float(c[0]) if np.isfinite(float(c[0])) else np.inf)
                 if progress is not None:
@@ -604,7 +612,7 @@ def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = Fal
         best = fit(problem, progress=bar.update)
     seconds["fit"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    fi = fisher(problem, best.t)
+    fi = fisher(problem, best.t, best.jacobian)
     mean, sd = problem.data()
     model = mean + sd * np.asarray(_compiled(problem, jacobian=False)(jnp.asarray(best.t)))
     check = jacobian_fd_error(problem, best.t, fi.jacobian)
