@@ -319,9 +319,9 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
 
 def _lm(problem: Problem, max_steps: int, verbose=None):
     """An LM solve `solve(u0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
-    with free parameter i pinned at t_i (i = −1: none pinned): (u, χ², steps, converged,
-    ∂r/∂t at u). `verbose`: optimistix's
-    per-step callback (the benchmark records χ² with it)."""
+    with free parameter i pinned at t_i (i = −1: none pinned), returning (u, χ², steps,
+    converged, ∂r/∂t at u). `verbose`: optimistix's per-step callback (the benchmark
+    records χ² with it)."""
     tol = problem.fit.rtol
     solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, verbose=False if verbose is None else verbose, cap_steps=True)
 
@@ -334,7 +334,8 @@ def _lm(problem: Problem, max_steps: int, verbose=None):
         sol = optx.least_squares(jacobian_once(residual), solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
         r = residual(sol.value, args)
         # ∂r/∂t at the end from ∂r/∂u of its last accepted step: dt/du = (hi − lo) cos(u)/2
-        # is a nonzero factor per column (cos u ≠ 0 in floating point), divided out exactly
+        # is a nonzero factor per column (cos u ≠ 0 in floating point), divided out to
+        # rounding (forward mode multiplied each column by it)
         lo, hi = problem.t_bounds()
         jac = sol.state.f_info.jac.as_matrix() / ((hi - lo) * jnp.cos(sol.value) / 2)
         return sol.value, jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful, jac
