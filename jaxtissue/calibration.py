@@ -52,6 +52,11 @@ def box_from_free(u, lo, hi):
     return lo + (hi - lo) * (1 + jnp.sin(u)) / 2
 
 
+def box_slope(u, lo, hi):
+    """dt/du of `box_from_free`."""
+    return (hi - lo) * jnp.cos(u) / 2
+
+
 def free_from_box(t, lo, hi):
     """The u ∈ [−π/2, π/2] of t; a t on a bound is moved 1e-6 of the range inside it,
     where ∂t/∂u ≠ 0 (at the bound it is 0, and a start there could not move)."""
@@ -332,13 +337,12 @@ def _lm(problem: Problem, max_steps: int, verbose=None):
 
     def solve(u0, args):
         sol = optx.least_squares(jacobian_once(residual), solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
-        r = residual(sol.value, args)
-        # ∂r/∂t at the end from ∂r/∂u of its last accepted step: dt/du = (hi − lo) cos(u)/2
-        # is a nonzero factor per column (cos u ≠ 0 in floating point), divided out to
-        # rounding (forward mode multiplied each column by it)
-        lo, hi = problem.t_bounds()
-        jac = sol.state.f_info.jac.as_matrix() / ((hi - lo) * jnp.cos(sol.value) / 2)
-        return sol.value, jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful, jac
+        # the residuals and ∂r/∂u of the last accepted step, at sol.value: no further
+        # model evaluation. ∂r/∂t: dt/du is a nonzero factor per column (cos u ≠ 0 in
+        # floating point), which forward mode multiplied in and is divided out to rounding
+        last = sol.state.f_info
+        jac = last.jac.as_matrix() / box_slope(sol.value, *problem.t_bounds())
+        return sol.value, jnp.sum(last.residual**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful, jac
 
     return solve
 
