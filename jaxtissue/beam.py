@@ -150,14 +150,68 @@ def _consolidation_operator(mat: Material, dy, dt):
 _GAUSS = (0.5 - 0.5 / 3**0.5, 0.5 + 0.5 / 3**0.5)
 
 
+class Section(eqx.Module):
+    """What the residual needs of a beam's geometry and material, computed once per
+    configuration (`Beam.prepared`) rather than in every Newton iteration: a loading
+    cycle's reverse pass then accumulates cotangents of these few arrays step by step,
+    and carries them back to the material once."""
+
+    E_plane: jax.Array  # (n_segments − 1, ny), Pa
+    y_gauss: jax.Array  # (2, ny) Gauss points across the thickness, m
+    moment_weights: jax.Array  # (2, ny): d · ½dy · y at each Gauss point, m³
+    pore_weights: jax.Array  # (n_segments − 1, ny): d (2μ/M) y dy, m³
+    euler_load: jax.Array  # N
+    axial_stiffness: jax.Array  # N
+    natural_angles: jax.Array  # (n_segments,)
+    natural_curvature: jax.Array  # (n_segments − 1,), 1/m
+    chord0: jax.Array  # m
+
+    @classmethod
+    def of(cls, geo: Geometry, mat: Material, grid: BeamGrid, imperfection: float) -> "Section":
+        N, L = grid.n_segments, geo.length
+        ny = mat.E.shape[1]
+        dy = geo.thickness / ny
+        y = geo.y_cells(ny)
+        y_gauss = jnp.stack([y - 0.5 * dy + g * dy for g in _GAUSS])
+        E_plane = mat.E_plane
+        mid = N // 2 - 1
+        EI = geo.depth * jnp.sum(E_plane[mid] * (y**2 + dy**2 / 12) * dy)
+        s_mid = (jnp.arange(N) + 0.5) * L / N
+        angles = jnp.arctan(imperfection * jnp.pi * jnp.cos(jnp.pi * s_mid / L))
+        ds = L / N
+        return cls(
+            E_plane=E_plane,
+            y_gauss=y_gauss,
+            moment_weights=geo.depth * 0.5 * dy * y_gauss,
+            pore_weights=geo.depth * (2 * mat.mu / mat.M) * y * dy,
+            euler_load=jnp.pi**2 * EI / L**2,
+            axial_stiffness=geo.depth * jnp.mean(jnp.sum(E_plane, axis=1)) * dy,
+            natural_angles=angles,
+            natural_curvature=(angles[1:] - angles[:-1]) / ds,
+            chord0=jnp.sum(ds * jnp.cos(angles)),
+        )
+
+
 class Beam(eqx.Module):
-    """One beam configuration: geometry, section material and resolution."""
+    """One beam configuration: geometry, section material and resolution. `prepared()`
+    adds its `Section` constants (else each method computes what it needs)."""
 
     geometry: Geometry
     material: Material  # (n_segments − 1, ny)
     grid: BeamGrid
     fibre_law: str = eqx.field(static=True, default="neo-hookean")
     imperfection: float = eqx.field(static=True, default=1e-2)
+    section: Section | None = None
+
+    def prepared(self) -> "Beam":
+        """This beam with its `Section` constants computed once."""
+        return eqx.tree_at(lambda beam: beam.section, self, self._section, is_leaf=lambda x: x is None)
+
+    @property
+    def _section(self) -> Section:
+        if self.section is not None:
+            return self.section
+        return Section.of(self.geometry, self.material, self.grid, self.imperfection)
 
     @property
     def ds(self):
@@ -169,43 +223,29 @@ class Beam(eqx.Module):
 
     def natural_angles(self):
         """Segment angles of the stress-free half-sine imperfection."""
-        N, L = self.grid.n_segments, self.geometry.length
-        s_mid = (jnp.arange(N) + 0.5) * L / N
-        return jnp.arctan(self.imperfection * jnp.pi * jnp.cos(jnp.pi * s_mid / L))
+        return self._section.natural_angles
 
     def curvature(self, theta):
         return (theta[1:] - theta[:-1]) / self.ds
 
     def elastic_moment(self, dkappa):
         """−d ∫ σ'(ε) y dy with ε = −Δκ y, two Gauss points per cell (exact if linear)."""
-        geo, mat = self.geometry, self.material
-        dy = geo.thickness / self.ny
-        y_lo = geo.y_cells(self.ny) - 0.5 * dy
-        total = 0.0
-        for g in _GAUSS:
-            y = y_lo + g * dy
-            eps = -dkappa[:, None] * y
-            if self.fibre_law == "linear":
-                sigma = mat.E_plane * eps
-            else:
-                stretch = 1 + eps
-                sigma = mat.E_plane / 3 * (stretch - stretch**-2)
-            total = total - jnp.sum(sigma * y, axis=1) * 0.5 * dy
-        return geo.depth * total
+        sec = self._section
+        eps = -dkappa[:, None, None] * sec.y_gauss  # (sections, Gauss point, cell)
+        if self.fibre_law == "linear":
+            sigma = eps
+        else:
+            stretch = 1 + eps
+            sigma = (stretch - stretch**-2) / 3
+        return -jnp.sum(sec.E_plane * jnp.sum(sigma * sec.moment_weights, axis=1), axis=1)
 
     def pore_moment_weights(self):
         """d (2μ/M) y dy: the section moment of the pore pressure is Σ_j w_j p_j."""
-        geo, mat = self.geometry, self.material
-        return geo.depth * (2 * mat.mu / mat.M) * geo.y_cells(self.ny) * (geo.thickness / self.ny)
+        return self._section.pore_weights
 
     def euler_load(self):
         """π² EI/L² of the drained section at mid-span, N (scales the post force)."""
-        geo, mat = self.geometry, self.material
-        mid = self.grid.n_segments // 2 - 1
-        dy = geo.thickness / self.ny
-        y = geo.y_cells(self.ny)
-        EI = geo.depth * jnp.sum(mat.E_plane[mid] * (y**2 + dy**2 / 12) * dy)
-        return jnp.pi**2 * EI / geo.length**2
+        return self._section.euler_load
 
     def _scale(self):
         """Moment scale EI_mid/L of the residual's moment rows, N m."""
@@ -214,7 +254,7 @@ class Beam(eqx.Module):
     def section_moment(self, kappa, a, b):
         """Section moments at the interior nodes for curvature κ and pore pressure
         p = a + κ b: elastic plus pore part (local in κ)."""
-        dkappa = kappa - self.curvature(self.natural_angles())
+        dkappa = kappa - self._section.natural_curvature
         return self.elastic_moment(dkappa) + jnp.sum(self.pore_moment_weights() * (a + kappa[:, None] * b), axis=1)
 
     def _geometric_residual(self, z, u):
@@ -225,7 +265,7 @@ class Beam(eqx.Module):
         ds = self.segment_length(P)
         y_nodes = jnp.concatenate([jnp.zeros(1), jnp.cumsum(ds * jnp.sin(theta))])
         r_moment = P * (y_nodes[1:-1] + geo.pin_offset) / self._scale()
-        chord0 = jnp.sum(self.ds * jnp.cos(self.natural_angles()))
+        chord0 = self._section.chord0
         r_close = jnp.sum(ds * jnp.sin(theta)) / geo.length
         r_chord = (jnp.sum(ds * jnp.cos(theta)) - (chord0 - u)) / geo.length
         return jnp.concatenate([r_moment, r_close[None], r_chord[None]])
@@ -270,8 +310,7 @@ class Beam(eqx.Module):
 
     def axial_stiffness(self):
         """EA of the drained section, averaged along the strip, N."""
-        geo = self.geometry
-        return geo.depth * jnp.mean(jnp.sum(self.material.E_plane, axis=1)) * geo.thickness / self.ny
+        return self._section.axial_stiffness
 
     def segment_length(self, P):
         """Segment length under the post force P (compression positive): the centre
@@ -429,15 +468,13 @@ class CycleResult(eqx.Module):
         return jnp.max(self.post_force_N)
 
 
-def _seepage(beam: Beam, p):
-    """Seepage velocities (v_x, v_y) at the cells of each section, m/s."""
-    geo, mat = beam.geometry, beam.material
-    dy = geo.thickness / beam.ny
+def _seepage(p, k_over_phi, dy, ds):
+    """Seepage velocities (v_x, v_y) = −(K/φ) ∇p at the cells of each section, m/s."""
     pad = jnp.pad(p, ((0, 0), (1, 1)))  # drained faces: p = 0 half a cell out
     grad_face = (pad[:, 1:] - pad[:, :-1]) / dy
     grad_face = grad_face.at[:, 0].multiply(2.0).at[:, -1].multiply(2.0)
-    vy = -(mat.K / mat.phi) * 0.5 * (grad_face[:, 1:] + grad_face[:, :-1])
-    vx = -(mat.K / mat.phi) * jnp.gradient(p, beam.ds, axis=0)
+    vy = -k_over_phi * 0.5 * (grad_face[:, 1:] + grad_face[:, :-1])
+    vx = -k_over_phi * jnp.gradient(p, ds, axis=0)
     return vx, vy
 
 
@@ -447,11 +484,13 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     means approach the periodic steady state)."""
     n = beam.grid.steps_per_cycle
     dt = period_s / n
+    beam = beam.prepared()  # the section's constants once, not in every Newton iteration
     geo, mat = beam.geometry, beam.material
     y = geo.y_cells(beam.ny)
     op = thomas_factor(*_consolidation_operator(mat, geo.thickness / beam.ny, dt))  # once per cycle
     drive = 2 * mat.mu * y  # p gains drive · Δκ
     b = thomas_solve(op, drive)
+    k_over_phi, dy = mat.K / mat.phi, geo.thickness / beam.ny
     kappa0 = beam.curvature(beam.natural_angles())
     mid = beam.grid.n_segments // 2
 
@@ -464,7 +503,7 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
         z_new, converged = beam.equilibrium(u, 3 * (z - z_prev) + z_prev2, a, b)  # Newton from the quadratic extrapolation
         kappa_new = beam.curvature(z_new[:-1])
         p_new = a + kappa_new[:, None] * b
-        vx, vy = _seepage(beam, p_new)
+        vx, vy = _seepage(p_new, k_over_phi, dy, beam.ds)
         w = (k >= last) / n  # cycle means accumulate in the carry, not per step
         sums = dict(vx=sums["vx"] + w * vx, vy=sums["vy"] + w * vy, abs_vy=sums["abs_vy"] + w * jnp.abs(vy))
         _, ys = beam.shape(z_new)

@@ -161,3 +161,39 @@ def test_equilibrium_derivative_is_the_implicit_function_theorem():
     fd = (force(1 + h) - force(1 - h)) / (2 * h)
     assert float(g) == pytest.approx(float(fd), rel=1e-6)
 
+
+
+@pytest.mark.parametrize("dkappa_per_m", [-150.0, 40.0, 200.0])  # surface strains up to 10 %
+def test_neo_hookean_section_moment_converges_to_its_integral(dkappa_per_m):
+    """M = −d (E'/3) ∫ [(1 − Δκ y) − (1 − Δκ y)⁻²] y dy over a uniform section, in
+    closed form (w = 1 − Δκ y: ∫ y w⁻² dy = [(1/w + ln w)/Δκ²]); two Gauss points per
+    cell converge at fourth order in the cell size."""
+    k, errors, cells = dkappa_per_m, [], (4, 8, 16)
+    for ny in cells:
+        beam = uniform_beam(n_segments=10, ny=ny, law="neo-hookean")
+        geo = beam.geometry
+        h, d, E = float(geo.thickness), float(geo.depth), float(beam.material.E_plane[0, 0])
+        G = lambda w: (1 / w + np.log(w)) / k**2  # noqa: E731
+        expected = -d * E / 3 * (-k * h**3 / 12 - (G(1 - k * h / 2) - G(1 + k * h / 2)))
+        moment = np.asarray(beam.elastic_moment(jnp.full(9, k)))
+        assert np.ptp(moment) <= 1e-15 * abs(expected)
+        errors.append(abs(moment[0] - expected) / abs(expected))
+    assert errors[-1] < 1e-7
+    assert np.all(observed_orders(1 / np.asarray(cells), errors) > 3.8), errors
+
+
+def test_prepared_section_constants_change_nothing():
+    """`Beam.prepared()` (the section constants computed once, as a loading cycle
+    does) gives the same residual and Jacobian as computing them on each call, on a
+    graded section."""
+    n, ny = 12, 8
+    m = jnp.linspace(0.0, 0.6, (n - 1) * ny).reshape(n - 1, ny) ** 2
+    beam = Beam(Geometry.from_params(P, "bottom"), Material.from_ecm(m, P), BeamGrid(n_segments=n, steps_per_cycle=20))
+    prepared = beam.prepared()
+    assert beam.section is None and prepared.section is not None
+    key1, key2 = jax.random.split(jax.random.PRNGKey(2))
+    z = (beam.rest_state() + 0.05 * jax.random.normal(key1, (n + 1,))).at[-1].set(0.8)
+    a = 1e2 * jax.random.normal(key2, (n - 1, ny))
+    args = (1e-3, a, 0.1 * a)
+    np.testing.assert_allclose(prepared.residual(z, args), beam.residual(z, args), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(prepared.jacobian(z, args), beam.jacobian(z, args), rtol=1e-13, atol=1e-15)

@@ -139,8 +139,10 @@ def test_fit_jacobian_matches_central_differences_at_the_optimum(recovered):
     problem, _, best = recovered
     J = cal.fisher(problem, best.t).jacobian
     assert cal.jacobian_fd_error(problem, best.t, J, h=1e-4) < 1e-4
-    # the fit's own (from its last LM step, in u, converted to t) is the same matrix
-    assert np.max(np.abs(best.jacobian - J)) < 1e-9 * np.max(np.abs(J))
+    # the fit's own (from its last LM step, in u, converted to t) is the same matrix, to
+    # the growth solves' tolerance (rtol 1e-8 here): it comes from another compiled
+    # program (the batched LM solve), whose adaptive steps may differ by rounding
+    assert np.max(np.abs(best.jacobian - J)) < 1e-7 * np.max(np.abs(J))
 
 
 def test_noisy_synthetic_data_recover_within_three_standard_errors(tmp_path):
