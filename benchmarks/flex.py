@@ -52,8 +52,8 @@ class ScipyGrowth2D:
         n = self.nx * self.ny
         # unknowns ordered (species, x, y); pattern: 5-point in o, pointwise couplings
         lap = scipy.sparse.kronsum(
-            scipy.sparse.diags([1, 1, 1], [-1, 0, 1], shape=(self.ny, self.ny)),
-            scipy.sparse.diags([1, 1, 1], [-1, 0, 1], shape=(self.nx, self.nx)),
+            scipy.sparse.diags([1.0, 1.0, 1.0], [-1, 0, 1], shape=(self.ny, self.ny)),
+            scipy.sparse.diags([1.0, 1.0, 1.0], [-1, 0, 1], shape=(self.nx, self.nx)),
         )
         eye = scipy.sparse.identity(n)
         self.pattern = scipy.sparse.bmat([[lap, eye, lap], [eye, eye, None], [eye, eye, eye]]).tocsc()

@@ -45,8 +45,8 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .linsolve import thomas_factor, thomas_solve
-from .remat import nested_checkpoint_scan
 from .params import Params
+from .remat import nested_checkpoint_scan
 
 GAMMA_W_PA_PER_M = 1000.0 * 9.81  # ρ_f g of the culture medium (MODEL.md §4)
 

@@ -13,13 +13,13 @@ import jax.tree_util as jtu
 import numpy as np
 
 from . import observables as obs
+from .beam import BeamGrid, loading_cycle
+from .coupling import RULES, beam_from_ecm, lumped_transport
 from .grid import Grid
 from .growth import GrowthModel, State, has_cell_transport
 from .linsolve import line_sweeps
-from .remat import nested_checkpoint_scan
 from .params import Params, concrete_value, nondimensionalise
-from .beam import BeamGrid, loading_cycle
-from .coupling import RULES, beam_from_ecm, lumped_transport
+from .remat import nested_checkpoint_scan
 from .solver import ROS34PW2, ReproducibleSteps
 
 THREE_WEEKS_S = 1.8144e6
