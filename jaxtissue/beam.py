@@ -204,7 +204,8 @@ class Beam(eqx.Module):
     section: Section | None = None
 
     def prepared(self) -> "Beam":
-        """This beam with its `Section` constants computed once."""
+        """This beam with its `Section` constants computed once, from its material now
+        (change the material of the unprepared beam, then prepare it again)."""
         return eqx.tree_at(lambda beam: beam.section, self, self._section, is_leaf=lambda x: x is None)
 
     @property
@@ -486,12 +487,12 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     dt = period_s / n
     beam = beam.prepared()  # the section's constants once, not in every Newton iteration
     geo, mat = beam.geometry, beam.material
-    y = geo.y_cells(beam.ny)
-    op = thomas_factor(*_consolidation_operator(mat, geo.thickness / beam.ny, dt))  # once per cycle
-    drive = 2 * mat.mu * y  # p gains drive · Δκ
+    dy = geo.thickness / beam.ny
+    op = thomas_factor(*_consolidation_operator(mat, dy, dt))  # once per cycle
+    drive = 2 * mat.mu * geo.y_cells(beam.ny)  # p gains drive · Δκ
     b = thomas_solve(op, drive)
-    k_over_phi, dy = mat.K / mat.phi, geo.thickness / beam.ny
-    kappa0 = beam.curvature(beam.natural_angles())
+    k_over_phi = mat.K / mat.phi
+    kappa0 = beam.section.natural_curvature
     mid = beam.grid.n_segments // 2
 
     last = n * (cycles - 1)  # the reported cycle's first step

@@ -162,7 +162,6 @@ def test_equilibrium_derivative_is_the_implicit_function_theorem():
     assert float(g) == pytest.approx(float(fd), rel=1e-6)
 
 
-
 @pytest.mark.parametrize("dkappa_per_m", [-150.0, 40.0, 200.0])  # surface strains up to 10 %
 def test_neo_hookean_section_moment_converges_to_its_integral(dkappa_per_m):
     """M = −d (E'/3) ∫ [(1 − Δκ y) − (1 − Δκ y)⁻²] y dy over a uniform section, in
