@@ -11,8 +11,9 @@ t = t_lo + (t_hi − t_lo)(1 + sin u)/2 (MINUIT's transform for two-sided bounds
 iterate respects the bounds and a bound is reached at a finite u (a logistic map puts it
 at u = −∞, where an optimum on a bound is approached by ever smaller steps in t).
 
-* `fit`: Levenberg–Marquardt (optimistix, forward-mode Jacobian) from a Latin-hypercube
-  design of starts inside the bounds (plus the base values), batched with `vmap`.
+* `fit`: Levenberg–Marquardt (optimistix, forward-mode Jacobian, Nielsen's damping
+  update) from a Latin-hypercube design of starts inside the bounds (plus the base
+  values), batched with `vmap`.
 * `fisher`: the Laplace approximation at the optimum from the exact Jacobian:
   covariance (JᵀJ)⁻¹ in t, standard errors, correlations.
 * `profiles`: profile likelihoods, re-optimising the other parameters at each point;
@@ -290,11 +291,47 @@ def jacobian_once(residual):
     return fn
 
 
+class _DampingState(eqx.Module):
+    step_size: jax.Array  # 1/λ
+    nu: jax.Array
+
+
+class NielsenDamping(optx.ClassicalTrustRegion):
+    """Levenberg–Marquardt's damping λ (= 1/step size) adapted by Nielsen's rule
+    (Madsen, Nielsen & Tingleff 2004, §3.2): after a step with gain ratio
+    ρ = actual / predicted reduction (the Gauss–Newton prediction, as optimistix's)
+    above `low_cutoff` it is accepted and λ ← λ·max(1/3, 1 − (2ρ − 1)³), ν ← 2;
+    otherwise rejected and λ ← νλ, ν ← 2ν.
+
+    optimistix's `ClassicalTrustRegion` changes λ only when ρ > 0.99 or ρ < 0.01. Where
+    the Gauss–Newton model misses curvature by a fixed fraction — as at a parameter
+    converging to its bound through `box_from_free`, whose own curvature JᵀJ lacks — ρ
+    stays in between, λ stays too large and LM converges linearly (seen: ~0.86 per step
+    over ten steps). Nielsen's rule lowers λ while ρ > 1/2, towards the λ at which such a
+    quadratic is minimised in one step (ρ = 1/2)."""
+
+    low_cutoff: float = 1e-3
+
+    def init(self, y, f_info_struct):
+        return _DampingState(jnp.array(1.0), jnp.array(2.0))
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        predicted = self.predict_reduction(y_eval - y, f_info)  # < 0 for a descent step
+        actual = f_eval_info.as_min() - f_info.as_min()
+        rho = jnp.where(predicted < 0, actual / jnp.where(predicted < 0, predicted, -1.0), 0.0)
+        accept = first_step | (rho > self.low_cutoff)
+        factor = jnp.where(accept, 1 / jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), 1 / state.nu)
+        step_size = jnp.where(first_step, state.step_size, state.step_size * factor)
+        nu = jnp.where(accept, 2.0, 2 * state.nu)
+        return step_size, accept, optx.RESULTS.successful, _DampingState(step_size, nu)
+
+
 class LevenbergMarquardt(optx.LevenbergMarquardt):
-    """optimistix's Levenberg–Marquardt, which also stops (as SciPy's `ftol`) after an
-    accepted step that lowers χ² by less than `ftol` χ² and by at least a quarter of
-    the linearised model's prediction, so the model is trusted there: in a flat valley
-    the Cauchy test (small steps in u and in r) can take many steps to pass. With
+    """optimistix's Levenberg–Marquardt with Nielsen's damping update (`NielsenDamping`),
+    which also stops (as SciPy's `ftol`) after an accepted step that lowers χ² by less
+    than `ftol` χ² and by at least a quarter of the linearised model's prediction, so
+    the model is trusted there: in a flat valley the Cauchy test (small steps in u and
+    in r) can take many steps to pass. With
     `cap_steps`, `args[-1]` caps the steps below `max_steps` (a dynamic limit, so that
     one compiled solve serves several; reaching it ends the solve as not converged)."""
 
@@ -303,6 +340,7 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
 
     def __init__(self, rtol: float, atol: float, ftol: float, verbose=False, cap_steps: bool = False):
         super().__init__(rtol=rtol, atol=atol, verbose=verbose)
+        self.search = NielsenDamping()
         self.ftol = ftol
         self.cap_steps = cap_steps
 

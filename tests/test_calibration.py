@@ -245,7 +245,9 @@ def test_levenberg_marquardt_reaches_an_optimum_on_a_bound_and_stops():
     u0 = cal.free_from_box(jnp.array([-1.2, 1.0]), lo, hi)
     sol = optx.least_squares(residual, solver, u0, max_steps=100, throw=False)
     assert sol.result == optx.RESULTS.successful
-    assert int(sol.stats["num_steps"]) < 80  # optimistix's own test alone: 96; a logistic map: never
+    # Nielsen's damping: 17 steps; optimistix's own trust-region update: 71; its own test
+    # without the box: 96; a logistic map: never
+    assert int(sol.stats["num_steps"]) < 30
     np.testing.assert_allclose(cal.box_from_free(sol.value, lo, hi), [0.5, 0.25], atol=1e-6)
     # the box map: anywhere in u lands inside; its inverse from inside and from a bound
     u = jnp.linspace(-10, 10, 101)[:, None] * jnp.ones(2)
