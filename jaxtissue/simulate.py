@@ -232,18 +232,16 @@ class Result(eqx.Module):
 
 
 def interval_bounds(t_end_s: float, coupling_interval_s: float, t_start_s: float = 0.0) -> np.ndarray:
-    """`t_start_s`, every multiple of the coupling interval T_g in between, `t_end_s`."""
+    """The coupling intervals' bounds: `t_start_s`, every multiple of T_g in between, 3
+    weeks (the assay time, where the interval holding it is split) and `t_end_s`."""
     n = int(math.floor(t_end_s / coupling_interval_s + 1e-9))
-    ts = set(np.round(np.arange(n + 1) * coupling_interval_s, 9).tolist()) | {t_end_s, t_start_s}
+    ts = set(np.round(np.arange(n + 1) * coupling_interval_s, 9).tolist()) | {t_end_s, t_start_s, THREE_WEEKS_S}
     return np.array(sorted(t for t in ts if t_start_s <= t <= t_end_s))
 
 
 def save_times(t_end_s: float, coupling_interval_s: float, t_start_s: float = 0.0) -> np.ndarray:
-    """The interval bounds, and exactly 3 weeks if reached."""
-    ts = set(interval_bounds(t_end_s, coupling_interval_s, t_start_s).tolist())
-    if t_start_s < THREE_WEEKS_S <= t_end_s:
-        ts.add(THREE_WEEKS_S)
-    return np.array(sorted(ts))
+    """The times a `Result` holds: the interval bounds (every T_g, 3 weeks, the end)."""
+    return interval_bounds(t_end_s, coupling_interval_s, t_start_s)
 
 
 def _growth_code(sol):
@@ -329,8 +327,6 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     coeffs = nondimensionalise(params)
     args = (params, grid)
     y0 = State.initial(coeffs, grid) if initial_state is None else initial_state
-    bounds = interval_bounds(times[-1], coupling_interval_s, times[0])
-    extra = THREE_WEEKS_S in times and THREE_WEEKS_S not in bounds
     ts = jnp.asarray(out_times)
     if protocol.regime == "static":
         model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport)
@@ -346,60 +342,41 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             reached &= code == 0
         t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
-        t0s, t1s = jnp.asarray(bounds[:-1]), jnp.asarray(bounds[1:])
-        tes = jnp.clip(THREE_WEEKS_S, t0s, t1s)
-
-        k3 = int(np.searchsorted(bounds, THREE_WEEKS_S)) - 1 if extra else None  # the interval holding 3 weeks
+        t0s, t1s = jnp.asarray(times[:-1]), jnp.asarray(times[1:])  # the interval bounds
 
         @jax.checkpoint
         def interval(y, k):
-            t0, t1, te = t0s[k], t1s[k], tes[k]
+            t0, t1 = t0s[k], t1s[k]
             _, cycle = flex_cycle(y, params, protocol.at(t0), grid, beam_grid)
             transport = lumped_transport(cycle, params, grid, beam_grid, protocol.lumping, protocol.pins)
             model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport, cell_transport=cell_transport)
-            # the state at 3 weeks inside an interval needs dense output (one more
-            # right-hand side per step); at a bound, t1 is all there is to save
-            sol = growth_solve(model, y, t0, t1, jnp.stack([te, t1]) if extra else None, options, args)
-            states = sol.ys
-            series = _observe_all(states, args)
+            sol = growth_solve(model, y, t0, t1, None, options, args)  # the end state only: no dense output
+            y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
+            series = _observe(y1, args)
             if progress:
                 jax.debug.callback(_Progress.tick, t1)
             out = dict(
                 series=series, post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain),
                 steps=sol.stats["num_steps"], code=jnp.where(cycle.failed, 2, _growth_code(sol)),
             )
-            return jtu.tree_map(lambda x: x[0], states), jtu.tree_map(lambda x: x[-1], states), out
-
-        def step(carry, k):
-            y, y3 = carry
-            y_te, y1, out = interval(y, k)
-            if extra:  # the state at 3 weeks, kept outside the remat
-                y3 = jtu.tree_map(lambda a, b: jnp.where(k == k3, a, b), y_te, y3)
-            return (y1, y3), out
+            return y1, out
 
         # each interval is rematerialised in the backward pass: memory holds one
         # state per interval (or ~√n of them, nested) plus one interval's working set
-        # (beam.py nests further); the state at 3 weeks rides in the carry
-        n_intervals = len(bounds) - 1
+        # (beam.py nests further)
+        n_intervals = len(times) - 1
         if options.nest_intervals:
-            (final, y3), out = nested_checkpoint_scan(step, (y0, y0 if extra else None), n_intervals)
+            final, out = nested_checkpoint_scan(interval, y0, n_intervals)
         else:
-            (final, y3), out = jax.lax.scan(step, (y0, y0 if extra else None), jnp.arange(n_intervals))
+            final, out = jax.lax.scan(interval, y0, jnp.arange(n_intervals))
         start = _observe(y0, args)
-        series = {k: jnp.concatenate([start[k][None], v[:, -1]]) for k, v in out["series"].items()}
+        series = {k: jnp.concatenate([start[k][None], v]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
         series["post_force_max_N"] = jnp.concatenate([out["post_force"], last_cycle.post_force_max_N[None]])
         series["surface_strain_max"] = jnp.concatenate([out["strain"], jnp.max(last_cycle.surface_strain)[None]])
         codes = jnp.concatenate([out["code"], jnp.where(last_cycle.failed, 2, 0)[None]])
         first = jnp.argmax(codes > 0)
         code, t_fail = codes[first], jnp.concatenate([t0s, t1s[-1:]])[first]
-        if extra:
-            _, cycle3 = flex_cycle(y3, params, protocol.at(THREE_WEEKS_S), grid, beam_grid)
-            at3 = {k: v[k3, 0] for k, v in out["series"].items()}
-            at3["post_force_max_N"] = cycle3.post_force_max_N
-            at3["surface_strain_max"] = jnp.max(cycle3.surface_strain)
-            series = {k: jnp.concatenate([v[: k3 + 1], at3[k][None], v[k3 + 1 :]]) for k, v in series.items()}
-            code, t_fail = jnp.where((code == 0) & cycle3.failed, 2, code), jnp.where((code == 0) & cycle3.failed, THREE_WEEKS_S, t_fail)
         num_steps = jnp.sum(out["steps"])
         if end_only:
             series = {k: v[-1:] for k, v in series.items()}
@@ -457,13 +434,13 @@ def simulate(
     - `grid`: the growth grid; default `Grid(1, 40)` (the 1-D transmural problem) for
       static culture and `Grid(50, 40)` for flex.
     - `coupling_interval_s`: the growth interval T_g (MODEL.md §5); results are saved
-      every T_g, at `t_end_s`, and at exactly 3 weeks when reached. In flex culture one
-      loading cycle is solved per interval.
+      every T_g, at `t_end_s`, and at exactly 3 weeks when reached, where the interval
+      holding it is split. In flex culture one loading cycle is solved per interval.
     - `beam`: the beam's resolution (`BeamGrid`).
     - `options`: tolerances and step limits of the growth solves (`SolverOptions`).
     - `initial_state`: start from this `State` instead of MODEL.md §2's ICs.
-    - `t_start_s`: the time of `initial_state` (0 or a multiple of the coupling
-      interval), to continue a run from a saved state.
+    - `t_start_s`: the time of `initial_state` (an interval bound: 0, a multiple of
+      the coupling interval or 3 weeks), to continue a run from a saved state.
     - `save`: `"intervals"` (default) saves the series at every save time above;
       `"end"` only at `t_end_s` (what a sweep of final values needs: a static run then
       skips the interpolation and observables at the ~90 intermediate times).
@@ -487,8 +464,9 @@ def simulate(
         raise ValueError(f"t_start_s = {t_start_s!r} must be in [0, t_end_s)")
     if t_start_s and initial_state is None:
         raise ValueError("t_start_s > 0 needs the initial_state at that time")
-    if t_start_s and abs(t_start_s / coupling_interval_s - round(t_start_s / coupling_interval_s)) > 1e-9:
-        raise ValueError(f"t_start_s = {t_start_s:g} must be a multiple of coupling_interval_s = {coupling_interval_s:g}")
+    if t_start_s and t_start_s != THREE_WEEKS_S and abs(t_start_s / coupling_interval_s - round(t_start_s / coupling_interval_s)) > 1e-9:
+        raise ValueError(f"t_start_s = {t_start_s:g} must be a multiple of coupling_interval_s = {coupling_interval_s:g} "
+                         f"or 3 weeks ({THREE_WEEKS_S:g} s)")
     if save not in ("intervals", "end"):
         raise ValueError(f"save = {save!r}; allowed: 'intervals', 'end'")
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())

@@ -131,3 +131,17 @@ def test_nested_interval_checkpoints_give_the_same_gradient(gradients):
     np.testing.assert_allclose(nest, flat, rtol=1e-9, atol=1e-12 * np.abs(flat).max())
     with pytest.raises(ValueError, match=r"nest_intervals = 1 must be True or False"):
         jt.SolverOptions(nest_intervals=1)
+
+
+def test_coupling_intervals_are_split_at_three_weeks():
+    """The interval holding 3 weeks ends there (its state is an interval's end state,
+    no dense output needed) and the next starts there; every other is T_g long."""
+    from jaxtissue.simulate import interval_bounds, save_times
+
+    bounds = interval_bounds(2.0e6, 2.0e4)
+    assert len(bounds) == 102 and bounds[0] == 0.0 and bounds[-1] == 2.0e6 and jt.THREE_WEEKS_S in bounds
+    steps = np.diff(bounds)
+    assert np.all(steps > 0) and np.sum(~np.isclose(steps, 2.0e4)) == 2  # the split interval's two parts
+    np.testing.assert_array_equal(save_times(2.0e6, 2.0e4), bounds)
+    assert jt.THREE_WEEKS_S not in interval_bounds(1.0e6, 2.0e4)
+    np.testing.assert_array_equal(interval_bounds(2.0e6, 2.0e4, jt.THREE_WEEKS_S), bounds[bounds >= jt.THREE_WEEKS_S])
