@@ -110,7 +110,8 @@ def main(quick=False):
     t_end = T_END / 10 if quick else T_END
     params = jax.tree_util.tree_map(jnp.asarray, jt.paper_parameters())
     protocol = jax.tree_util.tree_map(jnp.asarray, PROTOCOL)
-    n_intervals = len(interval_bounds(t_end, 2.0e4)) - 1
+    bounds = interval_bounds(t_end, 2.0e4)  # as jaxtissue's: every 2e4 s, 3 weeks, the end
+    n_intervals = len(bounds) - 1
     print(f"flex 1 Hz / 5 mm, t_end = {t_end:g} s ({n_intervals} growth intervals), growth grid "
           f"{GRID.nx} x {GRID.ny}, beam {BEAM.n_segments} segments x {BEAM.steps_per_cycle} steps per cycle")
 
@@ -174,7 +175,6 @@ def main(quick=False):
     y = jt.State.initial(jt.params.nondimensionalise(p_concrete), GRID)
     transport_of(y, params, protocol).block_until_ready()  # compile outside the timing
     u = np.concatenate([np.asarray(y.o).ravel(), np.asarray(y.c).ravel(), np.asarray(y.m).ravel()])
-    bounds = interval_bounds(t_end, 2.0e4)  # as jaxtissue's: every 2e4 s, 3 weeks, the end
     t_sp_beam = t_sp_growth = 0.0
     for t0, t1 in zip(bounds[:-1], bounds[1:]):
         o, c, m = (jnp.asarray(a.reshape(GRID.shape)) for a in np.split(u, 3))

@@ -464,7 +464,7 @@ def simulate(
         raise ValueError(f"t_start_s = {t_start_s!r} must be in [0, t_end_s)")
     if t_start_s and initial_state is None:
         raise ValueError("t_start_s > 0 needs the initial_state at that time")
-    if t_start_s and t_start_s != THREE_WEEKS_S and abs(t_start_s / coupling_interval_s - round(t_start_s / coupling_interval_s)) > 1e-9:
+    if t_start_s and np.min(np.abs(interval_bounds(t_end_s, coupling_interval_s) - t_start_s)) > 1e-9 * coupling_interval_s:
         raise ValueError(f"t_start_s = {t_start_s:g} must be a multiple of coupling_interval_s = {coupling_interval_s:g} "
                          f"or 3 weeks ({THREE_WEEKS_S:g} s)")
     if save not in ("intervals", "end"):

@@ -52,6 +52,17 @@ def test_post_displacement_is_bounded_by_the_strip_in_the_parameters():
     assert float(long.post_force_max_N[-1]) > 0
 
 
+def test_a_continued_run_starts_at_an_interval_bound():
+    """`t_start_s` must be a coupling-interval bound: a multiple of T_g or 3 weeks (where
+    the interval holding it is split); a run from 3 weeks continues on the same bounds."""
+    p, grid = jt.paper_parameters(), jt.Grid(1, 8)
+    y = jt.simulate(p, None, jt.THREE_WEEKS_S, grid).final
+    with pytest.raises(ValueError, match=r"t_start_s = 15000 must be a multiple of coupling_interval_s = 20000 or 3 weeks"):
+        jt.simulate(p, None, 1.9e6, grid, initial_state=y, t_start_s=1.5e4)
+    r = jt.simulate(p, None, 1.9e6, grid, initial_state=y, t_start_s=jt.THREE_WEEKS_S)
+    assert r.ts[0] == jt.THREE_WEEKS_S and r.ts[1] == 1.82e6 and r.ts[-1] == 1.9e6
+
+
 def test_concentrations_out_of_bounds_are_reported(tmp_path, capsys):
     # three huge fixed steps: the scheme overshoots (o < 0, c > c_max)
     r = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8), options=jt.SolverOptions(fixed_steps=3, dt0_s=1e5))
