@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import diffrax
@@ -11,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from . import observables as obs
 from .beam import BeamGrid, loading_cycle
@@ -119,8 +121,10 @@ class SolverOptions(eqx.Module):
     dt0_s: float = eqx.field(static=True, default=10.0)
     dtmax_s: float = eqx.field(static=True, default=2.0e5)
     max_steps: int = eqx.field(static=True, default=4096)
-    checkpoints: int = eqx.field(static=True, default=16)
-    """Checkpoints of the reverse pass through one growth solve (memory ∝ this)."""
+    checkpoints: int | None = eqx.field(static=True, default=None)
+    """Checkpoints of the reverse pass through one growth solve (memory ∝ this). None:
+    16 for a static run's one solve, 8 for each flex coupling interval (6–8 steps each
+    in the default flex run: each step is then stored, none recomputed twice)."""
     fixed_steps: int | None = eqx.field(static=True, default=None)
     """If set: no step control, this many steps growing geometrically from `dt0_s`
     (the same discrete map for every parameter value: for finite-difference checks)."""
@@ -132,8 +136,9 @@ class SolverOptions(eqx.Module):
     `linsolve`): cheaper steps, possibly more of them."""
     nest_intervals: bool = eqx.field(static=True, default=False)
     """Flex runs: the reverse pass keeps ~√n of the n coupling intervals' states
-    instead of all n (`remat.nested_checkpoint_scan`), for one more forward pass:
-    for long runs or large grids where memory binds."""
+    instead of all n (`remat.nested_checkpoint_scan`) and each interval's lumped
+    transport (a third of a state), for one more pass of the growth solves (no beam
+    cycle): for long runs or large grids where memory binds."""
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""
@@ -154,10 +159,11 @@ class SolverOptions(eqx.Module):
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
 
-    def adjoint(self):
+    def adjoint(self, checkpoints: int = 16):
+        """diffrax adjoint; `checkpoints` unless set in these options."""
         if self.autodiff == "forward":
             return diffrax.ForwardMode()
-        return diffrax.RecursiveCheckpointAdjoint(checkpoints=self.checkpoints)
+        return diffrax.RecursiveCheckpointAdjoint(checkpoints=self.checkpoints or checkpoints)
 
     def controller(self, t0, t1):
         """diffrax step-size controller over [t0, t1]."""
@@ -278,11 +284,11 @@ def _observe_all(states: State, args):
     return jax.vmap(lambda y: _observe(y, args))(states)
 
 
-def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptions, args, progress=False):
+def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptions, args, progress=False, checkpoints=16):
     """Integrate the growth system over [t0, t1] (diffrax, `ROS34PW2`); `sol.ys` is the
     state at `ts` (`ts=None`: at t1 only, no dense output). Observables are taken from
     the saved states afterwards (`_observe_all`), outside the solver's loop and its
-    checkpointed reverse pass."""
+    checkpointed reverse pass (`checkpoints`, unless `options` sets them)."""
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
     return diffrax.diffeqsolve(
         diffrax.ODETerm(model),
@@ -295,7 +301,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
         saveat=saveat,
         stepsize_controller=options.controller(t0, t1),
         max_steps=options.max_steps,
-        adjoint=options.adjoint(),
+        adjoint=options.adjoint(checkpoints),
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
         throw=False,
     )
@@ -343,14 +349,19 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
         t0s, t1s = jnp.asarray(times[:-1]), jnp.asarray(times[1:])  # the interval bounds
+        # nested: the lumped transport of every interval is kept, so that recomputing a
+        # chunk's states solves no beam cycle (each is still solved again for its own
+        # reverse pass)
+        keep = ("transport",) if options.nest_intervals else ()
 
-        @jax.checkpoint
+        @functools.partial(jax.checkpoint, policy=jax.checkpoint_policies.save_only_these_names(*keep))
         def interval(y, k):
             t0, t1 = t0s[k], t1s[k]
             _, cycle = flex_cycle(y, params, protocol.at(t0), grid, beam_grid)
             transport = lumped_transport(cycle, params, grid, beam_grid, protocol.lumping, protocol.pins)
+            transport = checkpoint_name(transport, "transport")
             model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport, cell_transport=cell_transport)
-            sol = growth_solve(model, y, t0, t1, None, options, args)  # the end state only: no dense output
+            sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8)  # the end state only: no dense output
             y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
             series = _observe(y1, args)
             if progress:
@@ -366,7 +377,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         # (beam.py nests further)
         n_intervals = len(times) - 1
         if options.nest_intervals:
-            final, out = nested_checkpoint_scan(interval, y0, n_intervals)
+            final, out = nested_checkpoint_scan(interval, y0, n_intervals, keep=keep)
         else:
             final, out = jax.lax.scan(interval, y0, jnp.arange(n_intervals))
         start = _observe(y0, args)

@@ -99,6 +99,19 @@ def test_linear_symmetric_cycle_in_periodic_state_has_zero_mean_flow():
     assert ratio_periodic < 1e-3 and ratio_first > 10 * ratio_periodic
 
 
+def test_cycle_means_are_the_means_of_the_step_fields():
+    """The cycle accumulates Σp and Σ|∂p/∂y| (v_f is linear in p); its means equal the
+    step-by-step seepage fields averaged afterwards (Darcy, NumPy's gradient along x)."""
+    beam = uniform_beam(n_segments=20, ny=12, steps=40)
+    cycle = loading_cycle(beam, 1.0, 5e-3, 0.05, keep_fields=True)
+    vy, p = np.asarray(cycle.fields["vy"][1:]), np.asarray(cycle.fields["p"][1:])
+    k_over_phi = np.asarray(beam.material.K / beam.material.phi)
+    vx = -k_over_phi * np.gradient(p, float(beam.ds), axis=1)
+    np.testing.assert_allclose(cycle.mean_vy, vy.mean(axis=0), rtol=1e-10, atol=1e-12 * np.abs(vy).max())
+    np.testing.assert_allclose(cycle.mean_abs_vy, np.abs(vy).mean(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(cycle.mean_vx, vx.mean(axis=0), rtol=1e-10, atol=1e-12 * np.abs(vx).max())
+
+
 def test_cycle_time_stepping_converges_at_first_order():
     values = []
     for steps in (50, 100, 200, 400):
