@@ -526,7 +526,7 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     zeros = jnp.zeros_like(mat.E)
     init = (z0, z0, z0, zeros, kappa0, dict(p=zeros, abs_gy=zeros))
     # A gradient keeps ~√n carries and the converged Newton iterates, not every step's.
-    # Chunks of the divisor of n nearest above √(2n) steps (20 of 200): fewer carries,
+    # Chunks of the least divisor of n from ⌊√(2n)⌋ steps (20 of 200): fewer carries,
     # which stay stored through the reverse pass of the growth solve that follows the
     # cycle, for longer chunks, whose per-step intermediates are live only while the
     # chunk itself is reversed (measured on the default grids: 10 x 20 steps needs

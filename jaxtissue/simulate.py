@@ -159,7 +159,7 @@ class SolverOptions(eqx.Module):
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
 
-    def adjoint(self, checkpoints: int = 16):
+    def adjoint(self, checkpoints: int):
         """diffrax adjoint; `checkpoints` unless set in these options."""
         if self.autodiff == "forward":
             return diffrax.ForwardMode()
@@ -489,7 +489,7 @@ def simulate(
     if progress and protocol.regime == "flex":
         from tqdm.auto import tqdm
 
-        _Progress.bar = tqdm(total=len(interval_bounds(float(t_end_s), float(coupling_interval_s), float(t_start_s))) - 1, unit="interval", desc="flex culture")
+        _Progress.bar = tqdm(total=len(times) - 1, unit="interval", desc="flex culture")  # the save times are the interval bounds
     try:
         return _simulate(params, protocol, grid, beam, (times, float(coupling_interval_s), save == "end"), options, initial_state, progress, cell_transport)
     finally:
