@@ -123,8 +123,8 @@ class SolverOptions(eqx.Module):
     max_steps: int = eqx.field(static=True, default=4096)
     checkpoints: int | None = eqx.field(static=True, default=None)
     """Checkpoints of the reverse pass through one growth solve (memory ∝ this). None:
-    16 for a static run's one solve, 8 for each flex coupling interval (6–8 steps each
-    in the default flex run: each step is then stored, none recomputed twice)."""
+    16 for a static run's one solve, 8 for each flex coupling interval (~7 steps each
+    in the default flex run, 683 in 101: each step is then stored once)."""
     fixed_steps: int | None = eqx.field(static=True, default=None)
     """If set: no step control, this many steps growing geometrically from `dt0_s`
     (the same discrete map for every parameter value: for finite-difference checks)."""
