@@ -331,7 +331,8 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
     which also stops (as SciPy's `ftol`) after an accepted step that lowers χ² by less
     than `ftol` χ² and by at least a quarter of the linearised model's prediction, so
     the model is trusted there: in a flat valley the Cauchy test (small steps in u and
-    in r) can take many steps to pass. With
+    in r) can take many steps to pass; and after a rejected step whose successor would
+    move u by less than the tolerance (no progress is left at this resolution). With
     `cap_steps`, `args[-1]` caps the steps below `max_steps` (a dynamic limit, so that
     one compiled solve serves several; reaching it ends the solve as not converged)."""
 
@@ -352,7 +353,12 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
         predicted = chi2_0 - jnp.sum((r0 + state.f_info.jac.mv(y_new - y)) ** 2)
         actual = chi2_0 - chi2_1
         flat = accepted & (actual <= self.ftol * chi2_1) & (actual >= 0.25 * predicted)
-        terminate, result = new.terminate | flat, new.result
+        # rejected, and the damped step to try next is below the tolerance in u (as
+        # MINPACK's xtol test on its trust region): where the model's round-off makes
+        # every step uphill, λ would otherwise grow without bound until `max_steps`
+        proposed = jnp.max(jnp.abs(new.y_eval - y_new) / (self.atol + self.rtol * jnp.abs(y_new)))
+        stalled = ~accepted & ~state.first_step & (proposed < 1)
+        terminate, result = new.terminate | flat | stalled, new.result
         if self.cap_steps:
             capped = ~terminate & (new.num_steps >= args[-1])
             terminate = terminate | capped

@@ -262,6 +262,22 @@ def test_levenberg_marquardt_reaches_an_optimum_on_a_bound_and_stops():
     assert float(jnp.cos(cal.free_from_box(lo, lo, hi)[0])) > 1e-3  # a start on a bound can move
 
 
+def test_levenberg_marquardt_stops_when_every_step_is_uphill():
+    """r(u) = 1 + |u| with a Jacobian that sees only 1 + u/2 (as round-off in an adaptive
+    model can hide a kink from its derivative): from u = 0 every step is uphill and
+    rejected; the solve stops once the damped step is below the tolerance in u, at the
+    minimum, instead of raising λ until `max_steps`."""
+
+    def residual(u, args):
+        return 1 + 0.5 * u + jax.lax.stop_gradient(jnp.abs(u) - 0.5 * u)
+
+    solver = cal.LevenbergMarquardt(rtol=1e-5, atol=1e-5, ftol=1e-5)
+    sol = optx.least_squares(residual, solver, jnp.zeros(1), max_steps=60, throw=False)
+    assert sol.result == optx.RESULTS.successful
+    assert int(sol.stats["num_steps"]) < 15
+    np.testing.assert_allclose(sol.value, 0.0, atol=1e-12)
+
+
 def test_levenberg_marquardt_step_cap_is_an_argument():
     """One compiled solve serves fits and profile points with different step limits:
     with `cap_steps`, the last of `args` caps the steps (reported as not converged)."""
