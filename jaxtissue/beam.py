@@ -529,7 +529,9 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     # a chunk's reverse pass recomputes each step from its carry and Newton root, so
     # that it stores one carry per step rather than each step's Gauss-point stresses
     # and Newton matrices (one cycle's gradient on the default grids: 4.8 → 1.6 MiB,
-    # about as fast). Chunks of the least divisor of n from ⌊√(2n)⌋ steps (20 of 200).
+    # about as fast). Chunks of the least divisor of n from ⌊√(2n)⌋ steps (20 of 200),
+    # longer than `remat.chunking`'s 10: fewer chunk carries, which stay stored through
+    # the reverse pass of the growth solve that follows the cycle.
     step = jax.checkpoint(step, policy=jax.checkpoint_policies.save_only_these_names("beam_newton"), prevent_cse=False)
     steps = n * cycles
     chunk = next(d for d in range(math.isqrt(2 * steps), steps + 1) if steps % d == 0)
