@@ -4,7 +4,7 @@ same coupled scheme with SciPy for the growth solves, in one run.
 Reports: compile time; forward wall time split into beam cycles and growth; the
 gradient of 3-week collagen with respect to all parameters and the protocol (time and
 peak memory relative to the forward run, from XLA's memory analysis), keeping every
-coupling interval's state or, nested, ~√n of them; and the SciPy
+coupling interval's state or, nested, ~√n of them (in float64 or float32); and the SciPy
 baseline — per growth interval the same jitted beam cycle, the same lumped dispersion,
 then `solve_ivp(BDF)` with the 2-D Jacobian's sparsity pattern (a NumPy right-hand
 side written from MODEL.md, as a user would).
@@ -19,6 +19,7 @@ import sys
 import time
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import scipy.integrate
@@ -150,11 +151,14 @@ def main(quick=False):
 
     m_fwd = memory(forward)
     variants = (("every interval's state kept", jt.SolverOptions()),
-                ("nest_intervals (~sqrt(n) states kept)", jt.SolverOptions(nest_intervals=True)))
-    grads, compile_s = [], []
+                ("nest_intervals (~sqrt(n) states kept)", jt.SolverOptions(nest_intervals=True)),
+                ("nest_intervals, kept in float32", jt.SolverOptions(nest_intervals=True, store_float32=True)))
+    grads, compile_s, values = [], [], []
     for _, options in variants:
         grads.append(jax.jit(jax.grad(lambda p, q, o=options: collagen(p, q, o), argnums=(0, 1))))
-        compile_s.append(timed(grads[-1], params, protocol)[1])
+        value, seconds = timed(grads[-1], params, protocol)
+        values.append(jax.flatten_util.ravel_pytree(value)[0])
+        compile_s.append(seconds)
     # forward and gradients timed in turn, best of three each: the ratios compare runs
     # made under the same machine load
     best = [np.inf] * (1 + len(grads))
@@ -164,10 +168,11 @@ def main(quick=False):
     t_fwd = best[0]
     print(f"gradient of 3-week collagen w.r.t. all {len(jt.paper_parameters().as_dict())} parameters and the protocol "
           f"(goals: < 5x forward time, < 3x forward memory; forward {t_fwd:.2f} s and {m_fwd / 2**20:.1f} MiB of XLA buffers):")
-    for (label, _), grad, t_grad, t_gfirst in zip(variants, grads, best[1:], compile_s):
+    for (label, _), grad, t_grad, t_gfirst, g in zip(variants, grads, best[1:], compile_s, values):
         m_grad = memory(grad)
+        differs = float(jnp.max(jnp.abs(g - values[0])) / jnp.max(jnp.abs(values[0])))
         print(f"  {label}: {t_grad:.1f} s = {t_grad / t_fwd:.1f}x forward, memory {m_grad / 2**20:.1f} MiB = "
-              f"{m_grad / m_fwd:.1f}x; compile ~{t_gfirst - t_grad:.0f} s")
+              f"{m_grad / m_fwd:.1f}x; compile ~{t_gfirst - t_grad:.0f} s; gradient differs from the first by {differs:.0e} (max, relative)")
 
     # ---- SciPy growth solves in the same staggered scheme
     p_concrete = jt.paper_parameters()

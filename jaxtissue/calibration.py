@@ -95,6 +95,7 @@ class ModelSettings:
     rtol: float = 1e-6
     atol: float = 1e-9
     nest_intervals: bool = False  # reverse-mode gradients (protocol optimisation): SolverOptions.nest_intervals
+    store_float32: bool = False  # with nest_intervals: SolverOptions.store_float32
 
     def grid(self, regime: str) -> Grid:
         return Grid(nx=1 if regime == "static" else self.flex_nx, ny=self.ny)
@@ -103,7 +104,11 @@ class ModelSettings:
         return BeamGrid(n_segments=self.beam_segments, steps_per_cycle=self.beam_steps_per_cycle)
 
     def options(self) -> SolverOptions:
-        return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff="forward", nest_intervals=self.nest_intervals)
+        return self.solver_options("forward")
+
+    def solver_options(self, autodiff: str) -> SolverOptions:
+        return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff=autodiff, nest_intervals=self.nest_intervals,
+                             store_float32=self.store_float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -537,7 +542,7 @@ def _settings(cls, table, where, section):
     settings = cls(**kwargs)
     if cls is ModelSettings:
         try:  # the grids' own checks
-            settings.grid("flex"), settings.beam()
+            settings.grid("flex"), settings.beam(), settings.options()
         except ValueError as err:
             raise InputError(f"{where}: [model] {err}") from None
     return settings

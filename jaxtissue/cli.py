@@ -114,6 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid (default 1 40 static, 50 40 flex)")
     n.add_argument("--nest-intervals", action="store_true",
                    help="flex: the reverse pass keeps ~sqrt(n) of the n growth intervals' states, for one more forward pass (less memory)")
+    n.add_argument("--store-float32", action="store_true",
+                   help="with --nest-intervals: those states and transports kept in float32 (half their memory; gradients within ~1e-7)")
     _flex_arguments(n)
     _parameter_arguments(n)
     _output_arguments(n)
@@ -404,11 +406,14 @@ def cmd_sensitivity(args) -> int:
     from .grid import Grid
     from .simulate import Protocol, SolverOptions
 
+    if args.store_float32 and not args.nest_intervals:
+        raise InputError("--store-float32 needs --nest-intervals (it stores the nested reverse pass's states)")
     params = load_params(args)
     protocol = _flex_protocol(args) if args.regime == "flex" else Protocol.static()
     io.check_output_folder(args.out, args.overwrite)
     grid = None if args.grid is None else Grid(*args.grid)
-    table = sweep.sensitivities(params, protocol, args.t_end, grid=grid, options=SolverOptions(nest_intervals=args.nest_intervals))
+    options = SolverOptions(nest_intervals=args.nest_intervals, store_float32=args.store_float32)
+    table = sweep.sensitivities(params, protocol, args.t_end, grid=grid, options=options)
     names = list(next(iter(table.values())))
     print(f"d ln(output)/d ln(parameter) at t = {args.t_end:g} s, {args.regime} culture")
     print(f"{'parameter':22s}" + "".join(f"{k:>20s}" for k in table))

@@ -63,9 +63,10 @@ def _neighbour_colours(col: np.ndarray):
     return out
 
 
-def _pick(responses, colours):
-    """responses[colours[i, j], i, j]."""
-    return jnp.take_along_axis(responses, jnp.asarray(colours)[None], axis=0)[0]
+def _pick(responses, colours: np.ndarray):
+    """responses[colours[i, j], i, j] (a masked sum: constant masks, no gather indices
+    held as buffers)."""
+    return sum(jnp.where(colours == k, responses[k], 0.0) for k in range(responses.shape[0]))
 
 
 class GrowthJacobian(eqx.Module):

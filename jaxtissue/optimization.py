@@ -37,7 +37,7 @@ import optax
 from .calibration import ModelSettings, _settings, _table
 from .io import InputError, number, params_from_table, read_params_toml, read_toml
 from .params import Params, suggest
-from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, interval_bounds, simulate
+from .simulate import THREE_WEEKS_S, Protocol, interval_bounds, simulate
 from .sweep import unit_latin_hypercube
 
 # ---------------------------------------------------------------------------------------
@@ -239,7 +239,7 @@ class Design:
         m = self.model
         protocol = self.protocol(theta)
         result = simulate(self.params, protocol, self.t_end_s, m.grid("flex"), coupling_interval_s=m.coupling_interval_s,
-                          beam=m.beam(), options=SolverOptions(rtol=m.rtol, atol=m.atol, autodiff=autodiff, nest_intervals=m.nest_intervals))
+                          beam=m.beam(), options=m.solver_options(autodiff))
         dose = conditioning_dose(protocol, interval_bounds(self.t_end_s, m.coupling_interval_s))
         J = OBJECTIVES[self.objective].fn(result, dose)
         values = jnp.stack([CONSTRAINTS[n].value(result) for n in self.constraints]) if self.constraints else jnp.zeros(0)

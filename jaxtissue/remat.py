@@ -49,3 +49,117 @@ def nested_checkpoint_scan(step, init, length: int, keep: tuple[str, ...] = (), 
 
     carry, hist = jax.lax.scan(chunk, init, jnp.arange(outer))
     return carry, jax.tree_util.tree_map(lambda h: h.reshape((outer * inner,) + h.shape[2:])[:length], hist)
+
+
+def _is_float(x) -> bool:
+    dtype = jnp.result_type(x) if not hasattr(x, "dtype") else x.dtype
+    return dtype != jax.dtypes.float0 and jnp.issubdtype(dtype, jnp.floating)
+
+
+def _tied(tree, ct):
+    """`tree` made data-dependent on the cotangent `ct` (+ 0·ct): what is computed from
+    it waits for `ct`. (An optimisation barrier on the two did not stop XLA's CPU
+    scheduler from hoisting the recomputation, and its buffers, to the start.)"""
+    tie = sum(jnp.ravel(c)[0] for c in jax.tree_util.tree_leaves(ct) if _is_float(c) and jnp.size(c))
+    return jax.tree_util.tree_map(lambda x: x + 0.0 * tie if _is_float(x) else x, tree)
+
+
+def replayed_scan(produce, finish, theta, init, length: int, chunk_length: int | None = None, store_dtype=None):
+    """A scan whose steps are `kept, aux = produce(theta, carry, k)` (expensive: in
+    jaxtissue a loading cycle and its lumped transport) then `carry, out =
+    finish(theta, carry, k, kept)` (a growth solve); returns the last carry and the
+    stacked `(aux, out)`.
+
+    Its reverse pass stores every step's `kept` and, per chunk of ~√length steps
+    (`chunking`), the chunk's first carry. Reversing a chunk, it replays (and stores)
+    the chunk's carries with `finish` alone, then takes each step's VJP in turn:
+    `finish`'s first, then `produce`'s, whose recomputation waits for the cotangent of
+    `kept` (so its intermediates are not held during `finish`'s reverse pass).
+
+    `theta` holds the differentiable values the functions use (they must not close
+    over traced values). `store_dtype` (e.g. `jnp.float32`): the stored carries and
+    `kept` values are rounded to it (half their memory in float32); the replay then
+    starts from values within that round-off (6e-8 relative in float32) of the
+    forward pass's, and the gradient differs from that of the float64 discrete map at
+    about that level. Reverse mode (`jax.grad`, `jax.vjp`, `vmap` of them); forward
+    mode is not defined (a `custom_vjp`).
+    """
+    inner = min(chunk_length or chunking(length), length)
+    outer = -(-length // inner)
+    padded = outer * inner > length
+    tmap = jax.tree_util.tree_map
+
+    def store(tree):
+        return tmap(lambda x: x.astype(store_dtype) if store_dtype is not None and _is_float(x) else x, tree)
+
+    def load(tree, like):
+        return tmap(lambda x, y: x.astype(y.dtype), tree, like)
+
+    def step(th, carry, k):
+        kept, aux = produce(th, carry, k)
+        carry, out = finish(th, carry, k, kept)
+        return carry, (aux, out), kept
+
+    k0 = jnp.zeros((), jnp.arange(1).dtype)
+    _, out_shape, kept_shape = jax.eval_shape(step, theta, init, k0)
+
+    def zeros(shape):
+        return tmap(lambda s: jnp.zeros(s.shape, s.dtype), shape)
+
+    def guarded(fn, skip):
+        """`fn(k, *a)` for the steps that exist, `skip(*a)` for the padding."""
+        return (lambda k, *a: jax.lax.cond(k < length, lambda *b: fn(k, *b), skip, *a)) if padded else fn
+
+    @jax.custom_vjp
+    def run(theta, init):
+        return jax.lax.scan(lambda c, k: step(theta, c, k)[:2], init, jnp.arange(length))
+
+    def run_fwd(theta, init):
+        body = guarded(lambda k, c: (lambda r: (r[0], r[1:]))(step(theta, c, k)), lambda c: (c, (zeros(out_shape), zeros(kept_shape))))
+
+        def chunk(carry, i):
+            last, (out, kept) = jax.lax.scan(lambda c, j: body(i * inner + j, c), carry, jnp.arange(inner))
+            return last, (store(carry), out, store(kept))
+
+        carry, (firsts, out, kept) = jax.lax.scan(chunk, init, jnp.arange(outer))
+        out = tmap(lambda h: h.reshape((outer * inner,) + h.shape[2:])[:length], out)
+        kept = tmap(lambda h: h.reshape((outer * inner,) + h.shape[2:]), kept)
+        return (carry, out), (theta, firsts, kept)
+
+    def floats(tree):
+        return [x for x in jax.tree_util.tree_leaves(tree) if _is_float(x)]
+
+    def run_bwd(res, cts):
+        theta, firsts, kept = res
+        ct_carry, (ct_aux, ct_out) = cts
+        # the outputs' non-float leaves have float0 cotangents: the VJPs see floats only
+        ct_aux, ct_out = (
+            [jnp.concatenate([c, jnp.zeros((outer * inner - length,) + c.shape[1:], c.dtype)]) for c in floats(t)] for t in (ct_aux, ct_out)
+        )
+
+        def kept_at(k):
+            return load(tmap(lambda h: h[k], kept), kept_shape)
+
+        def back_step(k, acc, carry):
+            ct_c, ct_th = acc
+            _, vjp = jax.vjp(lambda th, c, kp: (lambda r: (r[0], floats(r[1])))(finish(th, c, k, kp)), theta, carry, kept_at(k))
+            d_th, d_c, d_kept = vjp((ct_c, [c[k] for c in ct_out]))
+            _, vjp = jax.vjp(lambda th, c: (lambda r: (r[0], floats(r[1])))(produce(th, c, k)), theta, _tied(carry, d_kept))
+            d_th2, d_c2 = vjp((d_kept, [c[k] for c in ct_aux]))
+            return tmap(jnp.add, d_c, d_c2), tmap(lambda a, b, c: a + b + c, ct_th, d_th, d_th2)
+
+        back_step = guarded(back_step, lambda acc, carry: acc)
+        replay = guarded(lambda k, c: finish(theta, c, k, kept_at(k))[0], lambda c: c)
+
+        def chunk_back(acc, i):
+            first = load(tmap(lambda h: h[i], firsts), init)
+            _, carries = jax.lax.scan(lambda c, j: (replay(i * inner + j, c), store(c)), first, jnp.arange(inner))  # steps' inputs
+            acc, _ = jax.lax.scan(lambda a, xs: (back_step(i * inner + xs[0], a, load(xs[1], init)), None), acc, (jnp.arange(inner), carries),
+                                  reverse=True)
+            return acc, None
+
+        (ct_init, ct_theta), _ = jax.lax.scan(chunk_back, (ct_carry, tmap(jnp.zeros_like, theta)), jnp.arange(outer), reverse=True)
+        return ct_theta, ct_init
+
+    run.defvjp(run_fwd, run_bwd)
+    return run(theta, init)

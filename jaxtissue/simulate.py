@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 
 import diffrax
@@ -12,7 +11,6 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
-from jax.ad_checkpoint import checkpoint_name
 
 from . import observables as obs
 from .beam import BeamGrid, loading_cycle
@@ -21,7 +19,7 @@ from .grid import Grid
 from .growth import GrowthModel, State, has_cell_transport
 from .linsolve import line_sweeps
 from .params import Params, concrete_value, nondimensionalise
-from .remat import nested_checkpoint_scan
+from .remat import replayed_scan
 from .solver import ROS34PW2, ReproducibleSteps
 
 THREE_WEEKS_S = 1.8144e6
@@ -135,10 +133,15 @@ class SolverOptions(eqx.Module):
     h/3). Fewer sweeps approximate the step's Jacobian more coarsely (see
     `linsolve`): cheaper steps, possibly more of them."""
     nest_intervals: bool = eqx.field(static=True, default=False)
-    """Flex runs: the reverse pass keeps ~√n of the n coupling intervals' states
-    instead of all n (`remat.nested_checkpoint_scan`) and each interval's lumped
-    transport (a third of a state), for one more pass of the growth solves (no beam
-    cycle): for long runs or large grids where memory binds."""
+    """Flex runs, reverse mode: the reverse pass keeps ~√n of the n coupling intervals'
+    states instead of all n and each interval's lumped transport (a third of a state),
+    for one more pass of the growth solves (no loading cycle; `remat.replayed_scan`):
+    for long runs or large grids where memory binds."""
+    store_float32: bool = eqx.field(static=True, default=False)
+    """With `nest_intervals`: those kept states and transports are stored in float32
+    (half their memory). The solves stay float64; the reverse pass replays from values
+    rounded to 6e-8 relative, so the gradient differs from the float64 one at about
+    that level (`tests/test_coupling.py`)."""
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""
@@ -154,8 +157,11 @@ class SolverOptions(eqx.Module):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive integer")
         if self.o2_sweeps is not None and (not isinstance(self.o2_sweeps, int) or self.o2_sweeps < 0):
             raise ValueError(f"solver option o2_sweeps = {self.o2_sweeps!r} must be None or an integer >= 0")
-        if not isinstance(self.nest_intervals, bool):
-            raise ValueError(f"solver option nest_intervals = {self.nest_intervals!r} must be True or False")
+        for name in ("nest_intervals", "store_float32"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"solver option {name} = {getattr(self, name)!r} must be True or False")
+        if self.store_float32 and not self.nest_intervals:
+            raise ValueError("solver option store_float32 = True needs nest_intervals = True")
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
 
@@ -349,43 +355,50 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
         t0s, t1s = jnp.asarray(times[:-1]), jnp.asarray(times[1:])  # the interval bounds
-        # nested: the lumped transport of every interval is kept, so that recomputing a
-        # chunk's states solves no beam cycle (each is still solved again for its own
-        # reverse pass)
-        keep = ("transport",) if options.nest_intervals else ()
 
-        @functools.partial(jax.checkpoint, policy=jax.checkpoint_policies.save_only_these_names(*keep))
-        def interval(y, k):
-            t0, t1 = t0s[k], t1s[k]
-            _, cycle = flex_cycle(y, params, protocol.at(t0), grid, beam_grid)
-            transport = lumped_transport(cycle, params, grid, beam_grid, protocol.lumping, protocol.pins)
-            transport = checkpoint_name(transport, "transport")
-            model = GrowthModel(coeffs=coeffs, grid=grid, transport=transport, cell_transport=cell_transport)
-            sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8)  # the end state only: no dense output
+        def bounds(k):  # (t0, t1) of interval k, from constants made where they are used
+            return jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
+
+        def loading(theta, y, k):
+            """The interval's loading cycle: its lumped transport and outputs."""
+            p, q = theta
+            _, cycle = flex_cycle(y, p, q.at(bounds(k)[0]), grid, beam_grid)
+            transport = lumped_transport(cycle, p, grid, beam_grid, q.lumping, q.pins)
+            return transport, dict(post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain), failed=cycle.failed)
+
+        def growth(theta, y, k, transport):
+            """The interval's growth solve with the transport frozen."""
+            p = theta[0]
+            model = GrowthModel(coeffs=nondimensionalise(p), grid=grid, transport=transport, cell_transport=cell_transport)
+            sol = growth_solve(model, y, *bounds(k), None, options, (p, grid), checkpoints=8)  # the end state only
             y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
-            series = _observe(y1, args)
             if progress:
-                jax.debug.callback(_Progress.tick, t1)
-            out = dict(
-                series=series, post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain),
-                steps=sol.stats["num_steps"], code=jnp.where(cycle.failed, 2, _growth_code(sol)),
-            )
-            return y1, out
+                jax.debug.callback(_Progress.tick, bounds(k)[1])
+            return y1, dict(series=_observe(y1, (p, grid)), steps=sol.stats["num_steps"], code=_growth_code(sol))
 
-        # each interval is rematerialised in the backward pass: memory holds one
-        # state per interval (or ~√n of them, nested) plus one interval's working set
-        # (beam.py nests further)
         n_intervals = len(times) - 1
-        if options.nest_intervals:
-            final, out = nested_checkpoint_scan(interval, y0, n_intervals, keep=keep)
+        theta = (params, protocol)
+        if options.nest_intervals and options.autodiff == "reverse":
+            # the reverse pass keeps ~√n states and every interval's lumped transport, and
+            # replays a chunk's states with the growth solves alone (no loading cycle)
+            store = jnp.float32 if options.store_float32 else None
+            final, (cycles, out) = replayed_scan(loading, growth, theta, y0, n_intervals, store_dtype=store)
         else:
-            final, out = jax.lax.scan(interval, y0, jnp.arange(n_intervals))
+            # each interval is rematerialised in the backward pass: memory holds one
+            # state per interval plus one interval's working set (beam.py nests further)
+            @jax.checkpoint
+            def interval(y, k):
+                transport, cycle = loading(theta, y, k)
+                y1, out = growth(theta, y, k, transport)
+                return y1, (cycle, out)
+
+            final, (cycles, out) = jax.lax.scan(interval, y0, jnp.arange(n_intervals))
         start = _observe(y0, args)
         series = {k: jnp.concatenate([start[k][None], v]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
-        series["post_force_max_N"] = jnp.concatenate([out["post_force"], last_cycle.post_force_max_N[None]])
-        series["surface_strain_max"] = jnp.concatenate([out["strain"], jnp.max(last_cycle.surface_strain)[None]])
-        codes = jnp.concatenate([out["code"], jnp.where(last_cycle.failed, 2, 0)[None]])
+        series["post_force_max_N"] = jnp.concatenate([cycles["post_force"], last_cycle.post_force_max_N[None]])
+        series["surface_strain_max"] = jnp.concatenate([cycles["strain"], jnp.max(last_cycle.surface_strain)[None]])
+        codes = jnp.concatenate([jnp.where(cycles["failed"], 2, out["code"]), jnp.where(last_cycle.failed, 2, 0)[None]])
         first = jnp.argmax(codes > 0)
         code, t_fail = codes[first], jnp.concatenate([t0s, t1s[-1:]])[first]
         num_steps = jnp.sum(out["steps"])

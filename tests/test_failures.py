@@ -86,6 +86,7 @@ def test_input_mistakes_name_the_field_and_exit_2(tmp_path, capsys):
         (["simulate", "--regime", "flex", "--hold-fraction", "0.3", "--out", out], "--hold-fraction = 0.3 must be in [0, 0.25)"),
         (["simulate", "--regime", "flex", "--post-displacement", "-1", "--out", out], "--post-displacement = -1 must be >= 0 mm"),
         (["simulate", "--resume", out], "no interrupted run there"),
+        (["sensitivity", "--regime", "flex", "--store-float32", "--out", out], "--store-float32 needs --nest-intervals"),
     ]
     for argv, message in cases:
         assert main(argv) == 2

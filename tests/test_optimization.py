@@ -166,6 +166,7 @@ BAD = [
     ("objective = \"total_collagen\"\n[parameters]\nk_m0 = -1.0", "k_m0"),
     ("objective = \"total_collagen\"\nsteps = 3", "unknown key 'steps'"),
     ("objective = \"total_collagen\"\n[model]\nnest_intervals = \"yes\"", "nest_intervals = 'yes' must be true or false"),
+    ("objective = \"total_collagen\"\n[model]\nstore_float32 = true", "[model] solver option store_float32 = True needs nest_intervals = True"),
 ]
 
 
@@ -179,8 +180,10 @@ def test_bad_problem_files_give_one_line_and_exit_2(tmp_path, capsys, body, mess
 
 
 def test_model_table_can_nest_the_interval_checkpoints(tmp_path):
-    design = opt.read_design(write_problem(tmp_path, PROBLEM.replace("[model]", "[model]\nnest_intervals = true")))
+    design = opt.read_design(write_problem(tmp_path, PROBLEM.replace("[model]", "[model]\nnest_intervals = true\nstore_float32 = true")))
     assert design.model.nest_intervals is True
+    options = design.model.solver_options("reverse")
+    assert options.nest_intervals and options.store_float32
     assert opt.read_design(write_problem(tmp_path, PROBLEM, "q.toml")).model.nest_intervals is False
 
 
