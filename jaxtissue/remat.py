@@ -148,17 +148,30 @@ def replayed_scan(produce, finish, theta, init, length: int, chunk_length: int |
             d_th2, d_c2 = vjp((d_kept, [c[k] for c in ct_aux]))
             return tmap(jnp.add, d_c, d_c2), tmap(lambda a, b, c: a + b + c, ct_th, d_th, d_th2)
 
-        back_step = guarded(back_step, lambda acc, carry: acc)
+        def back_step_if_needed(k, acc, carry):
+            # a step whose cotangents are all zero (padding, or a step after the last
+            # output a loss reads) contributes zero: its VJP is skipped
+            live = jnp.zeros((), bool)
+            for c in jax.tree_util.tree_leaves(acc[0]) + [c[k] for c in ct_out + ct_aux]:
+                live |= jnp.any(c != 0)
+            return jax.lax.cond((k < length) & live, lambda a, c: back_step(k, a, c), lambda a, c: a, acc, carry)
+
         replay = guarded(lambda k, c: finish(theta, c, k, kept_at(k))[0], lambda c: c)
 
         def chunk_back(acc, i):
             first = load(tmap(lambda h: h[i], firsts), init)
             _, carries = jax.lax.scan(lambda c, j: (replay(i * inner + j, c), store(c)), first, jnp.arange(inner))  # steps' inputs
-            acc, _ = jax.lax.scan(lambda a, xs: (back_step(i * inner + xs[0], a, load(xs[1], init)), None), acc, (jnp.arange(inner), carries),
-                                  reverse=True)
-            return acc, None
+            acc, _ = jax.lax.scan(lambda a, xs: (back_step_if_needed(i * inner + xs[0], a, load(xs[1], init)), None), acc,
+                                  (jnp.arange(inner), carries), reverse=True)
+            return acc
 
-        (ct_init, ct_theta), _ = jax.lax.scan(chunk_back, (ct_carry, tmap(jnp.zeros_like, theta)), jnp.arange(outer), reverse=True)
+        def chunk_back_if_needed(acc, i):  # nor is a chunk replayed whose steps all would be
+            live = jnp.zeros((), bool)
+            for c in jax.tree_util.tree_leaves(acc[0]) + [jax.lax.dynamic_slice_in_dim(c, i * inner, inner) for c in ct_out + ct_aux]:
+                live |= jnp.any(c != 0)
+            return jax.lax.cond(live, chunk_back, lambda a, i: a, acc, i), None
+
+        (ct_init, ct_theta), _ = jax.lax.scan(chunk_back_if_needed, (ct_carry, tmap(jnp.zeros_like, theta)), jnp.arange(outer), reverse=True)
         return ct_theta, ct_init
 
     run.defvjp(run_fwd, run_bwd)

@@ -118,6 +118,7 @@ def test_gradient_through_the_staggered_run(gradients, name):
     assert ad == pytest.approx(fd, rel=1e-3), (name, ad, fd)
 
 
+@pytest.mark.slow  # `replayed_scan`'s exactness: tests/test_remat.py; this path: the float32 test below
 def test_nested_interval_checkpoints_give_the_same_gradient(gradients):
     """`SolverOptions(nest_intervals=True)` keeps ~√n interval states in the reverse
     pass: the same arithmetic, so the same gradient to round-off."""
@@ -150,6 +151,8 @@ def test_nested_gradient_with_float32_storage(gradients):
     assert 0 < error < 1e-6, error
     with pytest.raises(ValueError, match=r"store_float32 = True needs nest_intervals = True"):
         jt.SolverOptions(store_float32=True)
+    with pytest.raises(ValueError, match=r"nest_intervals = 1 must be True or False"):
+        jt.SolverOptions(nest_intervals=1)
 
 
 def test_coupling_intervals_are_split_at_three_weeks():

@@ -126,3 +126,26 @@ def test_replayed_scan_memory():
     assert plain > 3 * 100 * x0.nbytes  # per step: the carry, tanh's input, kept...
     assert f64 < (100 + 3 * math.isqrt(100)) * x0.nbytes  # kept per step, ~2√n carries
     assert f32 < 0.6 * f64
+
+
+def test_replayed_scan_skips_steps_without_cotangent():
+    """A loss that reads only step 3's output of 12: the gradient equals the plain
+    scan's, and the reverse pass recomputes `produce` for steps 0-3 only (12 forward
+    calls + 4), the later steps' cotangents being zero."""
+    calls = []
+
+    def counted(theta, x, k):
+        jax.debug.callback(lambda k: calls.append(int(k)), k)
+        return produce(theta, x, k)
+
+    def loss(scan, theta, x0):
+        _, (_, out) = scan(theta, x0)
+        return out["first"][3]
+
+    theta, x0 = (jnp.asarray(0.7), jnp.asarray(1.3)), jnp.linspace(0.1, 0.5, 4)
+    replayed = lambda th, x: replayed_scan(counted, finish, th, x, 12, chunk_length=4)  # noqa: E731
+    got = jax.block_until_ready(jax.jit(jax.grad(loss, argnums=(1, 2)), static_argnums=0)(replayed, theta, x0))
+    want = jax.grad(loss, argnums=(1, 2))(_plain(12), theta, x0)
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_allclose(g, w, rtol=1e-12)
+    assert sorted(calls) == sorted(list(range(12)) + [0, 1, 2, 3])
