@@ -74,7 +74,9 @@ def replayed_scan(produce, finish, theta, init, length: int, chunk_length: int |
     (`chunking`), the chunk's first carry. Reversing a chunk, it replays (and stores)
     the chunk's carries with `finish` alone, then takes each step's VJP in turn:
     `finish`'s first, then `produce`'s, whose recomputation waits for the cotangent of
-    `kept` (so its intermediates are not held during `finish`'s reverse pass).
+    `kept` (so its intermediates are not held during `finish`'s reverse pass). Steps
+    and chunks whose cotangents are all zero (after the last output a loss reads) are
+    skipped: their contribution is exactly zero.
 
     `theta` holds the differentiable values the functions use (they must not close
     over traced values). `store_dtype` (e.g. `jnp.float32`): the stored carries and
