@@ -150,13 +150,15 @@ def replayed_scan(produce, finish, theta, init, length: int, chunk_length: int |
             d_th2, d_c2 = vjp((d_kept, [c[k] for c in ct_aux]))
             return tmap(jnp.add, d_c, d_c2), tmap(lambda a, b, c: a + b + c, ct_th, d_th, d_th2)
 
+        def live(ct_carry, cts):
+            """Whether any of these cotangents is non-zero."""
+            return jnp.any(jnp.stack([jnp.any(c != 0) for c in jax.tree_util.tree_leaves(ct_carry) + cts]))
+
         def back_step_if_needed(k, acc, carry):
             # a step whose cotangents are all zero (padding, or a step after the last
             # output a loss reads) contributes zero: its VJP is skipped
-            live = jnp.zeros((), bool)
-            for c in jax.tree_util.tree_leaves(acc[0]) + [c[k] for c in ct_out + ct_aux]:
-                live |= jnp.any(c != 0)
-            return jax.lax.cond((k < length) & live, lambda a, c: back_step(k, a, c), lambda a, c: a, acc, carry)
+            needed = (k < length) & live(acc[0], [c[k] for c in ct_out + ct_aux])
+            return jax.lax.cond(needed, lambda a, c: back_step(k, a, c), lambda a, c: a, acc, carry)
 
         replay = guarded(lambda k, c: finish(theta, c, k, kept_at(k))[0], lambda c: c)
 
@@ -168,10 +170,8 @@ def replayed_scan(produce, finish, theta, init, length: int, chunk_length: int |
             return acc
 
         def chunk_back_if_needed(acc, i):  # nor is a chunk replayed whose steps all would be
-            live = jnp.zeros((), bool)
-            for c in jax.tree_util.tree_leaves(acc[0]) + [jax.lax.dynamic_slice_in_dim(c, i * inner, inner) for c in ct_out + ct_aux]:
-                live |= jnp.any(c != 0)
-            return jax.lax.cond(live, chunk_back, lambda a, i: a, acc, i), None
+            needed = live(acc[0], [jax.lax.dynamic_slice_in_dim(c, i * inner, inner) for c in ct_out + ct_aux])
+            return jax.lax.cond(needed, chunk_back, lambda a, i: a, acc, i), None
 
         (ct_init, ct_theta), _ = jax.lax.scan(chunk_back_if_needed, (ct_carry, tmap(jnp.zeros_like, theta)), jnp.arange(outer), reverse=True)
         return ct_theta, ct_init

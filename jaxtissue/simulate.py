@@ -354,8 +354,6 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             reached &= code == 0
         t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
-        t0s, t1s = jnp.asarray(times[:-1]), jnp.asarray(times[1:])  # the interval bounds
-
         def bounds(k):  # (t0, t1) of interval k, from constants made where they are used
             return jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
 
@@ -400,7 +398,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         series["surface_strain_max"] = jnp.concatenate([cycles["strain"], jnp.max(last_cycle.surface_strain)[None]])
         codes = jnp.concatenate([jnp.where(cycles["failed"], 2, out["code"]), jnp.where(last_cycle.failed, 2, 0)[None]])
         first = jnp.argmax(codes > 0)
-        code, t_fail = codes[first], jnp.concatenate([t0s, t1s[-1:]])[first]
+        code, t_fail = codes[first], jnp.asarray(times)[first]
         num_steps = jnp.sum(out["steps"])
         if end_only:
             series = {k: v[-1:] for k, v in series.items()}
