@@ -6,14 +6,12 @@ protocol of each condition. Its residuals r_i = (model_i − mean_i)/sd_i are a 
 differentiable function of the free parameters; χ² = Σ r_i² is −2 log L + const of a
 Gaussian likelihood.
 
-Coordinates: t = log θ or θ (the transform); the optimiser moves u ∈ ℝ with
-t = t_lo + (t_hi − t_lo)(1 + sin u)/2 (MINUIT's transform for two-sided bounds), so every
-iterate respects the bounds and a bound is reached at a finite u (a logistic map puts it
-at u = −∞, where an optimum on a bound is approached by ever smaller steps in t).
+Coordinates: t = log θ or θ (the transform), inside the bounds' box.
 
-* `fit`: Levenberg–Marquardt (optimistix, forward-mode Jacobian, Nielsen's damping
-  update) from a Latin-hypercube design of starts inside the bounds (plus the base
-  values), batched with `vmap`.
+* `fit`: Levenberg–Marquardt in the box (`LevenbergMarquardt`, an optimistix solver:
+  active-set steps, Nielsen's damping, exact forward-mode Jacobians with Broyden updates
+  between them) from a Latin-hypercube design of starts inside the bounds (plus the
+  base values), batched with `vmap` when `[fit] batch > 1`.
 * `fisher`: the Laplace approximation at the optimum from the exact Jacobian:
   covariance (JᵀJ)⁻¹ in t, standard errors, correlations.
 * `profiles`: profile likelihoods, re-optimising the other parameters at each point;
@@ -34,7 +32,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.custom_derivatives import SymbolicZero
 
 from .beam import BeamGrid
 from .data import DataError, Observation, read_measurements
@@ -46,23 +43,6 @@ from .sweep import unit_latin_hypercube
 
 CHI2_95 = 3.841458820694124
 """95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
-
-
-def box_from_free(u, lo, hi):
-    """t = lo + (hi − lo)(1 + sin u)/2 ∈ [lo, hi] for any u."""
-    return lo + (hi - lo) * (1 + jnp.sin(u)) / 2
-
-
-def box_slope(u, lo, hi):
-    """dt/du of `box_from_free`."""
-    return (hi - lo) * jnp.cos(u) / 2
-
-
-def free_from_box(t, lo, hi):
-    """The u ∈ [−π/2, π/2] of t; a t on a bound is moved 1e-6 of the range inside it,
-    where ∂t/∂u ≠ 0 (at the bound it is 0, and a start there could not move)."""
-    x = jnp.clip((t - lo) / (hi - lo), 1e-6, 1 - 1e-6)
-    return jnp.arcsin(2 * x - 1)
 
 
 class FreeParameter(NamedTuple):
@@ -119,7 +99,7 @@ class FitSettings:
     seed: int = 0
     batch: int = 1  # starts per vmapped batch
     max_steps: int = 60
-    rtol: float = 1e-5  # LM stops when steps in u and changes of r are below 1e-5, or χ² changes by < 1e-5 χ²
+    rtol: float = 1e-5  # LM stops when steps in t and changes of r are below 1e-5, or χ² changes by < 1e-5 χ²
     profile_points: int = 4  # per side
     profile_max_steps: int = 30
 
@@ -151,12 +131,6 @@ class Problem:
 
     def values_from_t(self, t) -> jax.Array:
         return jnp.stack([f.from_t(t[i]) for i, f in enumerate(self.free)])
-
-    def t_from_u(self, u):
-        return box_from_free(u, *self.t_bounds())
-
-    def u_from_t(self, t):
-        return free_from_box(t, *self.t_bounds())
 
     def params(self, t) -> Params:
         """The full parameter set at transformed free values t."""
@@ -236,8 +210,9 @@ class FitResult(NamedTuple):
     chi2_all: np.ndarray  # per start, final χ²
     steps_all: np.ndarray  # LM steps per start
     converged_all: np.ndarray
-    model_evaluations: int  # residual + Jacobian evaluations, all starts
-    jacobian: np.ndarray  # ∂r/∂t at the best end, from its last LM step
+    residual_evaluations: int  # all starts: residuals alone (one model evaluation each)
+    jacobian_evaluations: int  # forward-mode Jacobians with their residuals (~3 evaluations' cost each)
+    jacobian: np.ndarray  # ∂r/∂t at the best end (exact: the solve's own where it converged)
 
 
 @functools.lru_cache(maxsize=8)
@@ -249,9 +224,13 @@ def _compiled(problem: Problem, jacobian: bool):
 @functools.lru_cache(maxsize=8)
 def _solver(problem: Problem, batch: int):
     """The problem's compiled LM solve (`_lm`) for `batch` starts at a time (cached: the
-    fit and the profiles' points share it, and repeated fits do not recompile)."""
+    fit and the profiles' points share it, and repeated fits do not recompile). One start
+    at a time is not vmapped: under `vmap` the solve's Jacobian refresh would run every step."""
     s = problem.fit
-    return jax.jit(jax.vmap(_lm(problem, max(s.max_steps, s.profile_max_steps)), in_axes=(0, None)))
+    solve = _lm(problem, max(s.max_steps, s.profile_max_steps))
+    if batch == 1:
+        return jax.jit(lambda t0, args: jax.tree_util.tree_map(lambda x: x[None], solve(t0[0], args)))
+    return jax.jit(jax.vmap(solve, in_axes=(0, None)))
 
 
 def _pin(i: int, t_i: float, max_steps: int):
@@ -265,133 +244,186 @@ def _free(max_steps: int):
     return _pin(-1, 0.0, max_steps)
 
 
-def jacobian_once(residual):
-    """`residual(u, args)` whose linearisation at u materialises the Jacobian once, by
-    forward mode (one JVP per free parameter, with the residuals from the same pass).
+class _LMState(eqx.Module):
+    residual: jax.Array  # r at y
+    jac: jax.Array  # ∂r/∂y at y: exact (`exact`) or Broyden-updated
+    exact: jax.Array
+    absorbed: jax.Array  # jac has absorbed a rejected step since it was last exact or moved
+    stale: jax.Array  # the next step starts by recomputing the exact Jacobian at y
+    damping: jax.Array  # λ
+    nu: jax.Array
+    terminate: jax.Array
+    result: optx.RESULTS
+    steps: jax.Array
+    jacobians: jax.Array  # exact Jacobians computed (each also gives the residuals)
 
-    optimistix's Levenberg–Marquardt linearises the residuals each step and applies the
-    linear map several times (the Jacobian's columns, the predicted reduction); a model
-    with while loops (adaptive solves, Newton iterations) cannot be partially evaluated,
-    so each application would rerun the model. Here each application is a matrix
-    product."""
 
-    @jax.custom_jvp
-    def fn(u, args):
-        return residual(u, args)
+class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
+    """Levenberg–Marquardt in a box lower ≤ y ≤ upper, with exact forward-mode Jacobians
+    refreshed only when needed and Broyden's rank-one update in between (an
+    `optimistix` least-squares solver: `optx.least_squares(fn, solver, y0, args)`).
 
-    def jvp(primals, tangents):
-        (u, args), (du, dargs) = primals, tangents
-        zero = lambda t: isinstance(t, SymbolicZero)  # noqa: E731
-        if not all(map(zero, jax.tree_util.tree_leaves(dargs, is_leaf=zero))):
-            raise NotImplementedError("jacobian_once differentiates with respect to u only, not args")
+    * **Step.** δ minimises ‖r + J δ‖² + λ‖δ‖² with an active set held: coordinates on a
+      bound that the gradient Jᵀr pushes outwards stay there; coordinates the step would
+      carry out of the box are held on the bound they cross and the others re-solved,
+      until the step stays inside. An optimum on a bound is then reached as an interior
+      one (a map to unbounded coordinates flattens χ² at the bound, where Gauss–Newton
+      converges to it linearly).
+    * **Damping** (Nielsen's rule; Madsen, Nielsen & Tingleff 2004, §3.2): with gain
+      ratio ρ = actual / predicted reduction of χ², a step with ρ > 10⁻³ is accepted and
+      λ ← λ·max(1/3, 1 − (2ρ − 1)³); a rejected one sets λ ← νλ, ν ← 2ν.
+    * **Jacobian.** Each step evaluates the residuals once, at the trial point. After an
+      accepted step J takes Broyden's update J + (Δr − J δ) δᵀ/δᵀδ, exact along δ (one
+      evaluation instead of a forward-mode Jacobian, which costs about three for the
+      Engelmayr problem's five parameters; Transtrum & Sethna 2012). After a rejected
+      step with an updated J, the first absorbs the secant of the rejected step and
+      raises λ; a second recomputes the exact J at y, keeping λ.
+    * **Stopping**, judged only on a step made with an exact J (an updated one is first
+      refreshed): the step is small in y and in r (`rtol`, `atol`, per component), or
+      (as SciPy's `ftol`) it lowered χ² by < `ftol` χ² and by at least a quarter of the
+      prediction; or a rejected step's successor, at the raised λ, moves y by less than
+      the tolerance (MINPACK's xtol rule: no progress is left at this resolution). A
+      converged solve returns the point of that exact J (its final step is below the
+      tolerance), so the state's `jac` and `residual` are exact there.
+    * With `cap_steps`, `args[-1]` caps the steps below `max_steps` (a dynamic limit, so
+      that one compiled solve serves several; reaching it ends the solve as not
+      converged). `record(chi2)` is called on the host with χ² of every evaluation.
 
+    Under `vmap` the refresh's `lax.cond` runs both branches (a Jacobian every step)."""
+
+    rtol: float
+    atol: float
+    ftol: float
+    lower: jax.Array
+    upper: jax.Array
+    cap_steps: bool = eqx.field(static=True, default=False)
+    record: object = eqx.field(static=True, default=None)
+    low_cutoff: float = 1e-3
+    norm = staticmethod(optx.max_norm)
+
+    def __init__(self, rtol, atol, ftol, lower=-jnp.inf, upper=jnp.inf, cap_steps=False, record=None):
+        self.rtol, self.atol, self.ftol = rtol, atol, ftol
+        self.lower, self.upper = jnp.asarray(lower, float), jnp.asarray(upper, float)
+        self.cap_steps, self.record = cap_steps, record
+
+    @staticmethod
+    def _linearise(fn, y, args):
         def twice(v):
-            r = residual(v, args)
+            r = fn(v, args)[0]
             return r, r
 
-        jac, r = jax.jacfwd(twice, has_aux=True)(u)
-        return r, jac @ (jnp.zeros_like(u) if zero(du) else du)
+        jac, r = jax.jacfwd(twice, has_aux=True)(y)
+        return r, jac
 
-    fn.defjvp(jvp, symbolic_zeros=True)
-    return fn
+    def _step(self, y, jac, r, damping):
+        """The damped step from y inside the box (class docstring)."""
+        n = y.shape[0]
+        lower, upper = jnp.broadcast_to(self.lower, y.shape), jnp.broadcast_to(self.upper, y.shape)
+        grad = jac.T @ r
+        damped = jnp.sqrt(damping) * jnp.eye(n, dtype=y.dtype)
 
+        def solve(held, fixed):  # δ with δ[held] = fixed[held]
+            rhs = jnp.concatenate([-(r + jac @ jnp.where(held, fixed, 0.0)), jnp.zeros(n, y.dtype)])
+            free = jnp.linalg.lstsq(jnp.concatenate([jnp.where(held, 0.0, jac), damped]), rhs)[0]
+            return jnp.where(held, fixed, free)
 
-class _DampingState(eqx.Module):
-    step_size: jax.Array  # 1/λ
-    nu: jax.Array
+        held = ((y <= lower) & (grad > 0)) | ((y >= upper) & (grad < 0))
+        fixed = jnp.zeros_like(y)
+        for _ in range(n):  # each pass holds at least one more coordinate, or changes nothing
+            delta = solve(held, fixed)
+            out = ~held & ((y + delta < lower) | (y + delta > upper))
+            fixed = jnp.where(out, jnp.clip(y + delta, lower, upper) - y, fixed)
+            held = held | out
+        return jnp.clip(y + solve(held, fixed), lower, upper) - y
 
-
-class NielsenDamping(optx.ClassicalTrustRegion):
-    """Levenberg–Marquardt's damping λ (= 1/step size) adapted by Nielsen's rule
-    (Madsen, Nielsen & Tingleff 2004, §3.2): after a step with gain ratio
-    ρ = actual / predicted reduction (the Gauss–Newton prediction, as optimistix's)
-    above `low_cutoff` it is accepted and λ ← λ·max(1/3, 1 − (2ρ − 1)³), ν ← 2;
-    otherwise rejected and λ ← νλ, ν ← 2ν.
-
-    optimistix's `ClassicalTrustRegion` changes λ only when ρ > 0.99 or ρ < 0.01. Where
-    the Gauss–Newton model misses curvature by a fixed fraction — as at a parameter
-    converging to its bound through `box_from_free`, whose own curvature JᵀJ lacks — ρ
-    stays in between, λ stays too large and LM converges linearly (seen: ~0.86 per step
-    over ten steps). Nielsen's rule lowers λ while ρ > 1/2, towards the λ at which such a
-    quadratic is minimised in one step (ρ = 1/2)."""
-
-    low_cutoff: float = 1e-3
-
-    def init(self, y, f_info_struct):
-        return _DampingState(jnp.array(1.0), jnp.array(2.0))
-
-    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
-        predicted = self.predict_reduction(y_eval - y, f_info)  # < 0 for a descent step
-        actual = f_eval_info.as_min() - f_info.as_min()
-        rho = jnp.where(predicted < 0, actual / jnp.where(predicted < 0, predicted, -1.0), 0.0)
-        accept = first_step | (rho > self.low_cutoff)
-        factor = jnp.where(accept, 1 / jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), 1 / state.nu)
-        step_size = jnp.where(first_step, state.step_size, state.step_size * factor)
-        nu = jnp.where(accept, 2.0, 2 * state.nu)
-        return step_size, accept, optx.RESULTS.successful, _DampingState(step_size, nu)
-
-
-class LevenbergMarquardt(optx.LevenbergMarquardt):
-    """optimistix's Levenberg–Marquardt with Nielsen's damping update (`NielsenDamping`),
-    which also stops (as SciPy's `ftol`) after an accepted step that lowers χ² by less
-    than `ftol` χ² and by at least a quarter of the linearised model's prediction, so
-    the model is trusted there: in a flat valley the Cauchy test (small steps in u and
-    in r) can take many steps to pass; and after a rejected step whose successor would
-    move u by less than the tolerance (no progress is left at this resolution). With
-    `cap_steps`, `args[-1]` caps the steps below `max_steps` (a dynamic limit, so that
-    one compiled solve serves several; reaching it ends the solve as not converged)."""
-
-    ftol: float
-    cap_steps: bool
-
-    def __init__(self, rtol: float, atol: float, ftol: float, verbose=False, cap_steps: bool = False):
-        super().__init__(rtol=rtol, atol=atol, verbose=verbose)
-        self.search = NielsenDamping()
-        self.ftol = ftol
-        self.cap_steps = cap_steps
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        m, false = f_struct.shape[0], jnp.array(False)
+        return _LMState(jnp.zeros(m, y.dtype), jnp.zeros((m,) + y.shape, y.dtype), false, false, jnp.array(True),
+                        jnp.array(1.0), jnp.array(2.0), false, optx.RESULTS.successful, jnp.array(0), jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
-        y_new, new, aux = super().step(fn, y, args, options, state, tags)
-        accepted = (new.num_accepted_steps > state.num_accepted_steps) & ~state.first_step
-        r0 = state.f_info.residual
-        chi2_0, chi2_1 = jnp.sum(r0**2), jnp.sum(new.f_info.residual**2)
-        predicted = chi2_0 - jnp.sum((r0 + state.f_info.jac.mv(y_new - y)) ** 2)
-        actual = chi2_0 - chi2_1
-        flat = accepted & (actual <= self.ftol * chi2_1) & (actual >= 0.25 * predicted)
-        # rejected, and the damped step to try next is below the tolerance in u (as
-        # MINPACK's xtol test on its trust region): where the model's round-off makes
-        # every step uphill, λ would otherwise grow without bound until `max_steps`
-        proposed = jnp.max(jnp.abs(new.y_eval - y_new) / (self.atol + self.rtol * jnp.abs(y_new)))
-        stalled = ~accepted & ~state.first_step & (proposed < 1)
-        terminate, result = new.terminate | flat | stalled, new.result
+        # an exact Jacobian (and residuals) at y where the previous step asked for one:
+        # the start, and refreshes (the model's Jacobian appears once in the program)
+        r, jac = jax.lax.cond(state.stale, lambda: self._linearise(fn, y, args), lambda: (state.residual, state.jac))
+        exact = state.exact | state.stale
+        delta = self._step(y, jac, r, state.damping)
+        y_trial = y + delta
+        r_trial, aux = fn(y_trial, args)
+        chi2, chi2_trial = jnp.sum(r**2), jnp.sum(r_trial**2)
+        if self.record is not None:
+            jax.debug.callback(self.record, chi2_trial)
+        predicted = chi2 - jnp.sum((r + jac @ delta) ** 2)
+        actual = chi2 - chi2_trial
+        rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), 0.0)
+        accept = (rho > self.low_cutoff) & jnp.isfinite(chi2_trial)
+
+        raised = state.damping * state.nu
+        small = (self.norm(delta / (self.atol + self.rtol * jnp.abs(y_trial))) < 1) & (
+            self.norm((r_trial - r) / (self.atol + self.rtol * jnp.abs(r_trial))) < 1)
+        flat = (actual <= self.ftol * chi2_trial) & (actual >= 0.25 * predicted)
+        converged = accept & (small | flat)
+        stalled = ~accept & (self.norm(self._step(y, jac, r, raised) / (self.atol + self.rtol * jnp.abs(y))) < 1)
+        done = exact & (converged | stalled)
+
+        # the next y, its residuals and Jacobian: Broyden-updated along δ, or exact (kept,
+        # or recomputed at the start of the next step)
+        secant = jac + jnp.outer(r_trial - r - jac @ delta, delta) / jnp.maximum(delta @ delta, jnp.finfo(y.dtype).tiny)
+        absorb = ~accept & ~exact & ~state.absorbed
+        refresh = ~done & ((converged & ~exact) | (~accept & ~exact & state.absorbed))
+        damping = jnp.where(accept, state.damping * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
+                            jnp.where(refresh, state.damping, raised))
+        nu = jnp.where(accept, 2.0, jnp.where(refresh, state.nu, 2 * state.nu))
+
+        steps = state.steps + 1
+        terminate, result = done, optx.RESULTS.successful
         if self.cap_steps:
-            capped = ~terminate & (new.num_steps >= args[-1])
+            capped = ~terminate & (steps >= args[-1])
             terminate = terminate | capped
             result = optx.RESULTS.where(capped, optx.RESULTS.max_steps_reached, result)
-        return y_new, eqx.tree_at(lambda s: (s.terminate, s.result), new, (terminate, result)), aux
+        # a converged solve stays where its Jacobian is exact (the step from there is below
+        # the tolerance): its residuals and Jacobian are then those of the returned point
+        move = accept & ~done
+        new = _LMState(jnp.where(move, r_trial, r), jnp.where(move | absorb, secant, jac), ~move & exact, absorb,
+                       refresh, damping, nu, terminate, result, steps, state.jacobians + state.stale.astype(int))
+        return jnp.where(move, y_trial, y), new, aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return state.terminate, state.result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, dict(residual_evaluations=state.steps, jacobian_evaluations=state.jacobians)
 
 
-def _lm(problem: Problem, max_steps: int, verbose=None):
-    """An LM solve `solve(u0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
-    with free parameter i pinned at t_i (i = −1: none pinned), returning (u, χ², steps,
-    converged, ∂r/∂t at u). `verbose`: optimistix's per-step callback (the benchmark
-    records χ² with it)."""
+class _LMResult(NamedTuple):
+    t: jax.Array
+    chi2: jax.Array
+    steps: jax.Array
+    converged: jax.Array
+    evaluations: jax.Array  # of the residuals alone
+    jacobians: jax.Array  # forward-mode Jacobians, each with the residuals
+    jac: jax.Array  # ∂r/∂t at t: exact where `jac_exact` (a converged solve), else Broyden-updated
+    jac_exact: jax.Array
+
+
+def _lm(problem: Problem, max_steps: int, record=None):
+    """An LM solve `solve(t0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
+    with free parameter i pinned at t_i (i = −1: none pinned), returning an `_LMResult`.
+    `record(chi2)`: called with χ² of every point evaluated (the benchmark's clock)."""
     tol = problem.fit.rtol
-    solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, verbose=False if verbose is None else verbose, cap_steps=True)
+    solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, lower=problem.t_bounds()[0], upper=problem.t_bounds()[1],
+                                cap_steps=True, record=record)
 
-    def residual(u, args):
+    def residual(t, args):
         i, t_i, _ = args
-        t = problem.t_from_u(u)
         return problem.residuals(jnp.where(jnp.arange(t.shape[0]) == i, t_i, t))
 
-    def solve(u0, args):
-        sol = optx.least_squares(jacobian_once(residual), solver, u0, args, max_steps=max_steps, throw=False, options=dict(jac="fwd"))
-        # the residuals and ∂r/∂u of the last accepted step, at sol.value: no further
-        # model evaluation. ∂r/∂t: dt/du is a nonzero factor per column (cos u ≠ 0 in
-        # floating point), which forward mode multiplied in and is divided out to rounding
-        last = sol.state.f_info
-        jac = last.jac.as_matrix() / box_slope(sol.value, *problem.t_bounds())
-        return sol.value, jnp.sum(last.residual**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful, jac
+    def solve(t0, args):
+        i, t_i, _ = args
+        t0 = jnp.where(jnp.arange(t0.shape[0]) == i, t_i, t0)
+        sol = optx.least_squares(residual, solver, t0, args, max_steps=max_steps, throw=False)
+        last = sol.state.residual
+        return _LMResult(sol.value, jnp.sum(last**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
+                         sol.stats["residual_evaluations"], sol.stats["jacobian_evaluations"], sol.state.jac, sol.state.exact)
 
     return solve
 
@@ -401,26 +433,24 @@ def fit(problem: Problem, progress=None) -> FitResult:
     s = problem.fit
     starts = latin_hypercube(problem, s.starts, s.seed)
     solve = _solver(problem, s.batch)
-    ends, chi2, steps, ok, jac = [], [], [], [], []
+    runs = []
     for b in range(0, len(starts), s.batch):
-        u0 = problem.u_from_t(jnp.asarray(starts[b : b + s.batch]))
-        pad = s.batch - u0.shape[0]  # keep one compiled batch shape
-        u, c, n, conv, J = solve(jnp.concatenate([u0, jnp.repeat(u0[-1:], pad, axis=0)]), _free(s.max_steps))
-        keep = slice(0, u0.shape[0])
-        ends.append(np.asarray(problem.t_from_u(u[keep])))
-        chi2.append(np.asarray(c[keep]))
-        steps.append(np.asarray(n[keep]))
-        ok.append(np.asarray(conv[keep]))
-        jac.append(np.asarray(J[keep]))
+        t0 = jnp.asarray(starts[b : b + s.batch])
+        pad = s.batch - t0.shape[0]  # keep one compiled batch shape
+        out = solve(jnp.concatenate([t0, jnp.repeat(t0[-1:], pad, axis=0)]), _free(s.max_steps))
+        runs.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[: t0.shape[0]], out))
         if progress is not None:
-            progress(u0.shape[0])
-    ends, chi2, steps, ok, jac = (np.concatenate(a) for a in (ends, chi2, steps, ok, jac))
+            progress(t0.shape[0])
+    ends, chi2, steps, ok, evaluations, jacobians, jac, exact = (np.concatenate(a) for a in zip(*runs))
     chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
     best = int(np.argmin(chi2))
+    if not exact[best]:  # the solve stopped at its step limit: compute the Jacobian there
+        jac[best] = np.asarray(_compiled(problem, jacobian=True)(jnp.asarray(ends[best])))
+        jacobians[best] += 1
     return FitResult(
         t=ends[best], values=np.asarray(problem.values_from_t(jnp.asarray(ends[best]))), chi2=float(chi2[best]),
         starts_t=starts, ends_t=ends, chi2_all=chi2, steps_all=steps, converged_all=ok,
-        model_evaluations=int(np.sum(steps) + len(starts)), jacobian=jac[best],
+        residual_evaluations=int(np.sum(evaluations)), jacobian_evaluations=int(np.sum(jacobians)), jacobian=jac[best],
     )
 
 
@@ -473,7 +503,7 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
     s = problem.fit
     lo, hi = (np.asarray(b) for b in problem.t_bounds())
     solve = _solver(problem, 1)  # the fit's own when its batch is 1
-    u_best = problem.u_from_t(jnp.asarray(best.t))[None]
+    t_best = jnp.asarray(best.t)[None]
     level = best.chi2 + CHI2_95
     out = []
     for i, f in enumerate(problem.free):
@@ -482,10 +512,10 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
             span = abs(bound - best.t[i])
             if np.isfinite(se_t[i]) and se_t[i] > 0:
                 span = min(span, 4 * se_t[i])
-            xs, ys, u = [best.t[i]], [best.chi2], u_best
+            xs, ys, t = [best.t[i]], [best.chi2], t_best
             for k in range(1, s.profile_points + 1):
                 x = best.t[i] + direction * span * k / s.profile_points
-                u, c, *_ = solve(u, _pin(i, x, s.profile_max_steps))
+                t, c, *_ = solve(t, _pin(i, x, s.profile_max_steps))
                 xs.append(x)
                 ys.append(float(c[0]) if np.isfinite(float(c[0])) else np.inf)
                 if progress is not None:
@@ -699,7 +729,7 @@ def summary(cal: Calibration) -> dict:
         ],
         "correlation": {n: dict(zip(p.names, row.tolist())) for n, row in zip(p.names, cal.fisher.correlation)},
         "starts": {"chi2": f.chi2_all.tolist(), "lm_steps": f.steps_all.tolist(), "converged": f.converged_all.tolist()},
-        "model_evaluations": f.model_evaluations,
+        "model_evaluations": {"residuals": f.residual_evaluations, "jacobians": f.jacobian_evaluations},
         "jacobian_vs_central_differences": cal.jacobian_check,
         "seconds": cal.seconds,
     }
@@ -714,7 +744,8 @@ def report(cal: Calibration) -> str:
     lines += [
         f"Best χ² = {cal.fit.chi2:.4g} over {len(p.observations)} observations and {len(p.free)} free parameters; "
         f"{n_good} of {len(cal.fit.chi2_all)} starts ended within Δχ² < 0.1 of it (waterfall.png). "
-        f"{cal.fit.model_evaluations} model evaluations (residuals + Jacobian) in {cal.seconds['fit']:.0f} s. "
+        f"{cal.fit.residual_evaluations} evaluations of the residuals and {cal.fit.jacobian_evaluations} forward-mode "
+        f"Jacobians in {cal.seconds['fit']:.0f} s. "
         f"The exact Jacobian agrees with central differences to {cal.jacobian_check:.1e} (relative to its largest entry).",
         "",
         "## Parameters",
