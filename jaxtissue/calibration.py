@@ -277,7 +277,8 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
       evaluation instead of a forward-mode Jacobian, which costs about three for the
       Engelmayr problem's five parameters; Transtrum & Sethna 2012). After a rejected
       step with an updated J, the first absorbs the secant of the rejected step and
-      raises λ; a second recomputes the exact J at y, keeping λ.
+      raises λ; a second recomputes the exact J at y, keeping λ. A trial point where
+      the model fails (non-finite residuals) only raises λ.
     * **Stopping**, judged only on a step made with an exact J (an updated one is first
       refreshed): the step is small in y and in r (`rtol`, `atol`, per component), or
       (as SciPy's `ftol`) it lowered χ² by < `ftol` χ² and by at least a quarter of the
@@ -344,7 +345,13 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     def step(self, fn, y, args, options, state, tags):
         # an exact Jacobian (and residuals) at y where the previous step asked for one:
         # the start, and refreshes (the model's Jacobian appears once in the program)
-        r, jac = jax.lax.cond(state.stale, lambda: self._linearise(fn, y, args), lambda: (state.residual, state.jac))
+        def exact_at_y():
+            r, jac = self._linearise(fn, y, args)
+            if self.record is not None:
+                jax.debug.callback(self.record, jnp.sum(r**2))
+            return r, jac
+
+        r, jac = jax.lax.cond(state.stale, exact_at_y, lambda: (state.residual, state.jac))
         exact = state.exact | state.stale
         delta = self._step(y, jac, r, state.damping)
         y_trial = y + delta
@@ -355,7 +362,8 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         predicted = chi2 - jnp.sum((r + jac @ delta) ** 2)
         actual = chi2 - chi2_trial
         rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), 0.0)
-        accept = (rho > self.low_cutoff) & jnp.isfinite(chi2_trial)
+        finite = jnp.isfinite(chi2_trial)  # not where the model failed
+        accept = (rho > self.low_cutoff) & finite
 
         raised = state.damping * state.nu
         small = (self.norm(delta / (self.atol + self.rtol * jnp.abs(y_trial))) < 1) & (
@@ -368,8 +376,8 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         # the next y, its residuals and Jacobian: Broyden-updated along δ, or exact (kept,
         # or recomputed at the start of the next step)
         secant = jac + jnp.outer(r_trial - r - jac @ delta, delta) / jnp.maximum(delta @ delta, jnp.finfo(y.dtype).tiny)
-        absorb = ~accept & ~exact & ~state.absorbed
-        refresh = ~done & ((converged & ~exact) | (~accept & ~exact & state.absorbed))
+        absorb = ~accept & finite & ~exact & ~state.absorbed
+        refresh = ~done & ((converged & ~exact) | (~accept & finite & ~exact & state.absorbed))
         damping = jnp.where(accept, state.damping * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
                             jnp.where(refresh, state.damping, raised))
         nu = jnp.where(accept, 2.0, jnp.where(refresh, state.nu, 2 * state.nu))

@@ -310,3 +310,18 @@ def test_levenberg_marquardt_under_vmap_equals_single_solves():
         value, steps, jacobians = jax.jit(solve)(t0)
         np.testing.assert_allclose(batched[0][k], value, rtol=1e-12, atol=1e-14)
         assert int(batched[1][k]) == int(steps) and int(batched[2][k]) == int(jacobians)
+
+
+def test_levenberg_marquardt_steps_back_from_points_where_the_model_fails():
+    """Rosenbrock residuals that are NaN below t₁ = −0.2 (as a failed solve's): trial
+    points there are rejected, only raising λ, and the solve still reaches (1, 1)."""
+    seen = []
+
+    def residual(t, args):
+        return jnp.where(t[1] < -0.2, jnp.nan, 1.0) * rosenbrock(t)
+
+    solver = cal.LevenbergMarquardt(rtol=1e-8, atol=1e-8, ftol=1e-10, record=lambda c: seen.append(float(c)))
+    sol = optx.least_squares(residual, solver, jnp.array([-1.2, 1.0]), max_steps=100, throw=False)
+    assert sol.result == optx.RESULTS.successful
+    np.testing.assert_allclose(sol.value, [1.0, 1.0], atol=1e-6)
+    assert np.sum(np.isnan(seen)) >= 1 and np.all(np.isfinite(np.asarray(sol.state.jac)))
