@@ -359,7 +359,8 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         chi2, chi2_trial = jnp.sum(r**2), jnp.sum(r_trial**2)
         if self.record is not None:
             jax.debug.callback(self.record, chi2_trial)
-        predicted = chi2 - jnp.sum((r + jac @ delta) ** 2)
+        linear = jac @ delta  # the change of r that J predicts
+        predicted = chi2 - jnp.sum((r + linear) ** 2)
         actual = chi2 - chi2_trial
         rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), 0.0)
         finite = jnp.isfinite(chi2_trial)  # not where the model failed
@@ -375,7 +376,7 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
 
         # the next y, its residuals and Jacobian: Broyden-updated along δ, or exact (kept,
         # or recomputed at the start of the next step)
-        secant = jac + jnp.outer(r_trial - r - jac @ delta, delta) / jnp.maximum(delta @ delta, jnp.finfo(y.dtype).tiny)
+        secant = jac + jnp.outer(r_trial - r - linear, delta) / jnp.maximum(delta @ delta, jnp.finfo(y.dtype).tiny)
         absorb = ~accept & finite & ~exact & ~state.absorbed
         refresh = ~done & ((converged & ~exact) | (~accept & finite & ~exact & state.absorbed))
         damping = jnp.where(accept, state.damping * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),

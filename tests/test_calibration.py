@@ -4,7 +4,6 @@ import dataclasses
 import json
 import pathlib
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
