@@ -47,8 +47,8 @@ def main():
     # jaxtissue: the LM of `calibration.fit`, the χ² of each point it evaluates recorded
     # with a host timestamp (as SciPy's evaluations are below)
     record = []
-    solve = cal._lm(problem, problem.fit.max_steps, record=lambda c: record.append((time.perf_counter(), float(c))))
-    lm = jax.jit(lambda t0: solve(t0, cal._free(problem.fit.max_steps)))
+    solve = cal.lm_solve(problem, problem.fit.max_steps, record=lambda c: record.append((time.perf_counter(), float(c))))
+    lm = jax.jit(lambda t0: solve(t0, cal.unpinned(problem.fit.max_steps)))
     t0 = time.perf_counter()
     jax.block_until_ready(lm(jnp.asarray(starts[0])))
     print(f"jaxtissue: compile + first fit {time.perf_counter() - t0:.1f} s")

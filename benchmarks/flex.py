@@ -7,7 +7,7 @@ peak memory relative to the forward run, from XLA's memory analysis), keeping ev
 coupling interval's state or, nested, ~√n of them (in float64 or float32); and the SciPy
 baseline — per growth interval the same jitted beam cycle, the same lumped dispersion,
 then `solve_ivp(BDF)` with the 2-D Jacobian's sparsity pattern (a NumPy right-hand
-side written from MODEL.md, as a user would).
+side written from docs/model.md, as a user would).
 
     python benchmarks/flex.py [--quick]     (--quick: 1/10 of the culture time)
 """
@@ -25,7 +25,7 @@ import numpy as np
 import scipy.integrate
 import scipy.sparse
 
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))  # the SciPy reference
 import scipy_reference  # noqa: E402
 
 import optimistix as optx  # noqa: E402
@@ -33,7 +33,8 @@ import optimistix as optx  # noqa: E402
 import jaxtissue as jt  # noqa: E402
 from jaxtissue.beam import Beam, BeamGrid, loading_cycle  # noqa: E402
 from jaxtissue.coupling import lumped_transport  # noqa: E402
-from jaxtissue.simulate import flex_cycle, interval_bounds  # noqa: E402
+from jaxtissue.protocol import interval_bounds  # noqa: E402
+from jaxtissue.simulate import flex_cycle  # noqa: E402
 
 T_END = 2.0e6
 GRID = jt.Grid(nx=50, ny=40)
@@ -75,7 +76,7 @@ class ScipyGrowth2D:
         fy[:, -1] = D[:, -1] * (p["o_ext"] - o[:, -1]) / (dy / 2)
         op = np.maximum(o, 0)
         do = (fx[1:] - fx[:-1]) / dx + (fy[:, 1:] - fy[:, :-1]) / dy - p["Q_o"] * c * op / (p["o_h"] + op)
-        dc = (self.k_p * scipy_reference._g(o, p) - p["k_a"]) * c * (p["c_max"] - c)
+        dc = (self.k_p * scipy_reference.moser_aiba(o, p) - p["k_a"]) * c * (p["c_max"] - c)
         dm = p["k_m0"] * np.maximum(o - p["o_m"], 0) * c * (1 - m)
         return np.concatenate([do.ravel(), dc.ravel(), dm.ravel()])
 

@@ -1,4 +1,4 @@
-"""Set the default lumping constant C of the dispersive rule (MODEL.md §5).
+"""Set the default lumping constant C of the dispersive rule (docs/model.md §5).
 
 Until the full calibration, C is chosen so that the model's 3-week flex/static
 collagen ratio matches Engelmayr's 0.846/0.546 = 1.55 on the default grids; the secant

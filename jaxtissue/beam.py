@@ -1,4 +1,4 @@
-"""The large-deformation poroelastic beam and one loading cycle (MODEL.md §4).
+"""The large-deformation poroelastic beam and one loading cycle (docs/model.md §4).
 
 **Kinematics.** A geometrically exact (elastica) beam along the arc length
 s ∈ [0, L], discretised into `n_segments` straight segments of angle θ_k; the curvature
@@ -22,7 +22,7 @@ p_ext at y = ±h/2) and, beam-like, no flow along x:
 which follows from Darcy's law, incompressible constituents and σ_yy = 0 (so that the
 volumetric strain is (2μ/M) ε + p/M). The total axial stress σ' − (2μ/M) p gives the
 section moment M = −d ∫ σ y dy. Material: E(m) = E_s + Ē_m0 ρ_m, ν(m), k(m), φ(m)
-(MODEL.md §3, §4). The seepage velocity is v_f = −(K/φ) ∇p.
+(docs/model.md §3, §4). The seepage velocity is v_f = −(K/φ) ∇p.
 
 **Time.** Quasi-static over one cycle from rest (p = 0), implicit Euler in time (the
 pressure is eliminated linearly, section by section), and at each step a Newton solve
@@ -45,11 +45,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from .linsolve import thomas_factor, thomas_solve
-from .params import Params
-from .remat import nested_checkpoint_scan
+from .numerics import nested_checkpoint_scan, thomas_factor, thomas_solve
+from .params import SIParams
 
-GAMMA_W_PA_PER_M = 1000.0 * 9.81  # ρ_f g of the culture medium (MODEL.md §4)
+GAMMA_W_PA_PER_M = 1000.0 * 9.81  # ρ_f g of the culture medium (docs/model.md §4)
 
 
 def waveform(t, period_s, u_max, hold_fraction):
@@ -93,14 +92,14 @@ class Material(eqx.Module):
     phi: jax.Array  # porosity
 
     @classmethod
-    def from_ecm(cls, m, p: Params) -> "Material":
-        """E = E_s + Ē_m0 ρ_m (A.25), ν, k, φ linear in m (2.7, 2.8, 2.13)."""
-        rho_m_ug_g = p.rho_m_max_mg_g * 1e3 * m
-        E = (p.E_s_kPa + p.E_m0_kPa_per_ug_g * rho_m_ug_g) * 1e3
-        nu = p.nu_s + (p.nu_t - p.nu_s) * m
-        k = p.k_hyd_s_cm_s + (p.k_hyd_t_cm_s - p.k_hyd_s_cm_s) * m  # cm/s
-        K = k * 1e-2 / GAMMA_W_PA_PER_M
-        phi = p.phi_s + (p.phi_t - p.phi_s) * m
+    def from_ecm(cls, m, si: SIParams) -> "Material":
+        """E = E_s + Ē_m0 ρ_m (A.25), ν, k, φ linear in m (2.7, 2.8, 2.13); `si` from
+        `Params.si()`."""
+        E = si.E_s_Pa + si.E_m0_Pa_per_ug_g * si.rho_m_max_ug_g * m
+        nu = si.nu_s + (si.nu_t - si.nu_s) * m
+        k = si.k_hyd_s_m_s + (si.k_hyd_t_m_s - si.k_hyd_s_m_s) * m  # m/s
+        K = k / GAMMA_W_PA_PER_M
+        phi = si.phi_s + (si.phi_t - si.phi_s) * m
         return cls(E=E, nu=nu, K=K, phi=phi)
 
     @property
@@ -127,16 +126,18 @@ class Geometry(eqx.Module):
     pin_offset: jax.Array  # m, e of the moment arm
 
     @classmethod
-    def from_params(cls, p: Params, pins: str = "centroid") -> "Geometry":
-        h = p.thickness_mm * 1e-3
+    def from_params(cls, si: SIParams, pins: str = "centroid") -> "Geometry":
+        """The strip of `si` (`Params.si()`), pinned at the centroid line or the bottom
+        corners."""
+        h = si.thickness_m
         offset = {"centroid": 0.0, "bottom": 0.5}[pins] * h
-        return cls(length=p.length_mm * 1e-3, thickness=h, depth=p.depth_mm * 1e-3, pin_offset=offset)
+        return cls(length=si.length_m, thickness=h, depth=si.depth_m, pin_offset=offset)
 
     def y_cells(self, ny):
         return (jnp.arange(ny) + 0.5) * (self.thickness / ny) - 0.5 * self.thickness
 
 
-def _consolidation_operator(mat: Material, dy, dt):
+def consolidation_operator(mat: Material, dy, dt):
     """Tridiagonal (sub, diag, sup) of I − dt M ∂_y(K ∂_y ·), p = 0 half a cell out."""
     K = mat.K
     inner = 2 * K[:, 1:] * K[:, :-1] / (K[:, 1:] + K[:, :-1])
@@ -489,7 +490,7 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
     beam = beam.prepared()  # the section's constants once, not in every Newton iteration
     geo, mat = beam.geometry, beam.material
     dy = geo.thickness / beam.ny
-    op = thomas_factor(*_consolidation_operator(mat, dy, dt))  # once per cycle
+    op = thomas_factor(*consolidation_operator(mat, dy, dt))  # once per cycle
     drive = 2 * mat.mu * geo.y_cells(beam.ny)  # p gains drive · Δκ
     b = thomas_solve(op, drive)
     k_over_phi = mat.K / mat.phi

@@ -18,13 +18,36 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
 
 import numpy as np
 
+from .grid import DEFAULT_SHAPES
 from .io import InputError
+from .protocol import T_END_S, THREE_WEEKS_S
 
-DEFAULT_GRID = (1, 40)
+FLAGS = {
+    "period_s": "--period",
+    "post_displacement_mm": "--post-displacement",
+    "hold_fraction": "--hold-fraction",
+    "max_steps": "--max-steps",
+    "rtol": "--rtol",
+    "grid": "--grid",
+    "steps_per_cycle": "--steps",
+    "t_end_s": "--t-end",
+    "out": "--out",
+    "overwrite": "--overwrite",
+    "resume": "--resume",
+}
+"""The library's argument names and the flags that set them: messages from the library
+name arguments in backticks, and the command line shows the flag instead."""
+
+
+def as_flags(message: str) -> str:
+    """`message` with each backticked argument name that has a flag (`FLAGS`) replaced
+    by the flag, the other backticks dropped."""
+    return re.sub(r"`(\w+)`", lambda m: FLAGS.get(m.group(1), m.group(1)), message)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -55,14 +78,15 @@ def _grid_size(text: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="jaxtissue", description="Differentiable simulator of engineered-tissue formation.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser.commands = sub.choices  # name -> its parser, for hints on unknown flags
 
     p = sub.add_parser("params", help="print the parameter table (defaults, units, ranges, sources)")
     p.set_defaults(func=cmd_params)
 
     s = sub.add_parser("simulate", help="simulate one culture into a folder of files and figures")
     s.add_argument("--regime", choices=["static", "flex"], default="static", help="culture regime (default: static)")
-    s.add_argument("--t-end", type=_positive_float, default=2.0e6, metavar="S", help="end of culture in seconds (default 2.0e6)")
-    s.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid cells along x and across y (default 1 40 static, 50 40 flex)")
+    s.add_argument("--t-end", type=_positive_float, default=T_END_S, metavar="S", help=f"end of culture in seconds (default {T_END_S:g})")
+    s.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help=f"growth grid cells along x and across y (default {_default_grids()})")
     _flex_arguments(s)
     s.add_argument("--lumping", choices=["dispersive", "paper"], default="dispersive", help="cycle-to-growth coupling rule (default dispersive)")
     _parameter_arguments(s)
@@ -86,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_cycle)
 
     r = sub.add_parser("reproduce", help="the paper's static and flex study into figures and a report")
-    r.add_argument("--t-end", type=_positive_float, default=2.0e6, metavar="S", help="end of culture in seconds (default 2.0e6)")
+    r.add_argument("--t-end", type=_positive_float, default=T_END_S, metavar="S", help=f"end of culture in seconds (default {T_END_S:g})")
     _parameter_arguments(r)
     _output_arguments(r)
     r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
@@ -110,8 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     n = sub.add_parser("sensitivity", help="normalised sensitivities d ln(output)/d ln(parameter) at 3 weeks")
     n.add_argument("--regime", choices=["static", "flex"], default="static", help="culture regime (default: static)")
-    n.add_argument("--t-end", type=_positive_float, default=1.8144e6, metavar="S", help="time of the outputs in s (default 3 weeks)")
-    n.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help="growth grid (default 1 40 static, 50 40 flex)")
+    n.add_argument("--t-end", type=_positive_float, default=THREE_WEEKS_S, metavar="S", help="time of the outputs in s (default 3 weeks)")
+    n.add_argument("--grid", type=_grid_size, nargs=2, default=None, metavar=("NX", "NY"), help=f"growth grid (default {_default_grids()})")
     n.add_argument("--nest-intervals", action="store_true",
                    help="flex: the reverse pass keeps ~sqrt(n) of the n growth intervals' states, for one more forward pass (less memory)")
     n.add_argument("--store-float32", action="store_true",
@@ -132,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _default_grids() -> str:
+    return ", ".join(f"{nx} {ny} {regime}" for regime, (nx, ny) in DEFAULT_SHAPES.items())
+
+
 def _parameter_arguments(parser):
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
     parser.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
@@ -149,16 +177,13 @@ def _flex_arguments(parser):
     parser.add_argument("--pins", choices=["centroid", "bottom"], default="centroid", help="where the posts pin the strip (default centroid)")
 
 
-_PROTOCOL_FLAGS = {"period_s": "--period", "post_displacement_mm": "--post-displacement", "hold_fraction": "--hold-fraction"}
-
-
 def _flex_protocol(args):
-    from .simulate import Protocol, ProtocolValueError
+    from .protocol import Protocol, ProtocolValueError
 
     try:
         return Protocol.flex(args.period, args.post_displacement, args.hold_fraction, getattr(args, "lumping", "dispersive"), args.pins)
     except ProtocolValueError as err:
-        raise InputError(f"{_PROTOCOL_FLAGS[err.field]} = {err.value:g} must be {err.allowed}") from None
+        raise InputError(f"{FLAGS[err.field]} = {err.value:g} must be {err.allowed}") from None
     except ValueError as err:
         raise InputError(str(err)) from None
 
@@ -173,12 +198,29 @@ def cmd_params(args) -> int:
     return 0
 
 
+def parse_assignment(text: str) -> tuple[str, float]:
+    """`NAME=VALUE` of `--set`."""
+    from .params import FIELDS, suggest
+
+    name, sep, value = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise InputError(f"--set {text!r}: expected NAME=VALUE")
+    if name not in FIELDS:
+        raise InputError(f"--set {name}: unknown parameter; {suggest(name, FIELDS)}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise InputError(f"--set {name}={value}: {value!r} is not a number ({FIELDS[name].unit})") from None
+    return name, number
+
+
 def load_params(args):
-    from .io import make_params, parse_assignment, read_params_toml
+    from .io import make_params, read_params_toml
 
     base = read_params_toml(args.params) if args.params else None
     changes = dict(parse_assignment(text) for text in args.set)
-    params = make_params(changes, base)
+    params = make_params(changes, base, where="--set")
     u = getattr(args, "post_displacement", None)
     if u is not None and getattr(args, "regime", "flex") == "flex" and u >= params.length_mm:
         raise InputError(f"--post-displacement = {u:g} must be below the strip length length_mm = {params.length_mm:g} mm")
@@ -211,10 +253,11 @@ def cmd_simulate(args) -> int:
     import shutil
 
     from . import io, plots
-    from .checkpoint import simulate_checkpointed
     from .grid import Grid
     from .params import Params
-    from .simulate import Protocol, SolverOptions, simulate
+    from .protocol import Protocol
+    from .simulate import SolverOptions, simulate
+    from .studies.checkpoint import simulate_checkpointed
 
     if args.resume:
         if args.checkpoint_every is not None:
@@ -226,7 +269,7 @@ def cmd_simulate(args) -> int:
             raise InputError("--out DIR is required (or --resume DIR)")
         params = load_params(args)
     protocol = Protocol.static() if args.regime == "static" else _flex_protocol(args)
-    nx, ny = args.grid if args.grid else ((1, 40) if args.regime == "static" else (50, 40))
+    nx, ny = args.grid if args.grid else DEFAULT_SHAPES[args.regime]
     if ny < 3:
         raise InputError(f"--grid NY = {ny} must be at least 3")
     grid = Grid(nx=nx, ny=ny)
@@ -252,7 +295,7 @@ def cmd_simulate(args) -> int:
 
             result = simulate_checkpointed(params, protocol, args.t_end, grid, kept, args.checkpoint_every, options=options, progress=tick)
     if bool(result.failed):
-        print(f"jaxtissue: error: {result.failure_message()}. Nothing was written.", file=sys.stderr)
+        print(f"jaxtissue: error: {as_flags(result.failure_message())}. Nothing was written.", file=sys.stderr)
         return 1
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_netcdf(result.to_xarray(), tmp / "result.nc")
@@ -268,9 +311,9 @@ def cmd_simulate(args) -> int:
 
 def summary(result, regime: str) -> dict:
     """The `summary.json` of a run: series, 3-week values (when reached) and parameters."""
-    from .simulate import THREE_WEEKS_S
+    from .result import SCALARS
 
-    keys = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2", "post_force_max_N")
+    keys = SCALARS
     out = {"regime": regime, "times_s": result.ts}
     out.update({k: getattr(result, k) for k in keys})
     if float(result.ts[-1]) >= THREE_WEEKS_S:
@@ -295,11 +338,13 @@ def cmd_cycle(args) -> int:
         raise InputError("--ny must be >= 3, --segments an even number >= 4, --steps >= 8")
     io.check_output_folder(args.out, args.overwrite)
     grid = BeamGrid(n_segments=args.segments, steps_per_cycle=args.steps)
-    material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), args.ecm), params)
-    beam = Beam(Geometry.from_params(params, protocol.pins), material, grid)
+    material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), args.ecm), params.si())
+    beam = Beam(Geometry.from_params(params.si(), protocol.pins), material, grid)
     cycle = loading_cycle(beam, protocol.period_s, protocol.post_displacement_mm * 1e-3, protocol.hold_fraction, keep_fields=True)
     if bool(cycle.failed):
-        print("jaxtissue: error: the beam's Newton solve did not converge; try more --steps or a smaller --post-displacement. Nothing was written.", file=sys.stderr)
+        from .result import RESULTS
+
+        print(f"jaxtissue: error: {as_flags(RESULTS[RESULTS.beam_failed])}. Nothing was written.", file=sys.stderr)
         return 1
     summary = {
         "midspan_deflection_mm_max": 1e3 * float(jnp.max(cycle.midspan_deflection_m)),
@@ -320,7 +365,8 @@ def cmd_cycle(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
-    from . import io, reproduce
+    from . import io
+    from .studies import reproduce
 
     params = load_params(args)
     io.check_output_folder(args.out, args.overwrite)
@@ -328,7 +374,7 @@ def cmd_reproduce(args) -> int:
     results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
     failed = [name for name, r in results.items() if bool(r.failed)]
     if failed:
-        print(f"jaxtissue: error: {'; '.join(f'{n}: {results[n].failure_message()}' for n in failed)}. Nothing was written.", file=sys.stderr)
+        print(f"jaxtissue: error: {'; '.join(f'{n}: {as_flags(results[n].failure_message())}' for n in failed)}. Nothing was written.", file=sys.stderr)
         return 1
     with io.output_folder(args.out, args.overwrite) as tmp:
         reproduce.write(results, params, tmp)
@@ -337,7 +383,8 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    from . import calibration, io
+    from . import io
+    from .studies import calibration
 
     overrides = {} if args.starts is None else {"starts": args.starts}
     problem = calibration.read_problem(args.problem, overrides)
@@ -355,7 +402,8 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_optimize(args) -> int:
-    from . import io, optimization
+    from . import io
+    from .studies import optimization
 
     overrides = {k: v for k, v in (("starts", args.starts), ("steps", args.steps), ("grid_points", args.grid_points)) if v is not None}
     design = optimization.read_design(args.problem, overrides)
@@ -374,7 +422,8 @@ def cmd_optimize(args) -> int:
 def cmd_sweep(args) -> int:
     import pathlib
 
-    from . import io, sweep
+    from . import io
+    from .studies import sweep
 
     sweep.use_all_cores()  # before anything starts JAX's backend
     definition = sweep.read_sweep(args.sweep)
@@ -402,9 +451,11 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_sensitivity(args) -> int:
-    from . import io, plots, sweep
+    from . import io, plots
     from .grid import Grid
-    from .simulate import Protocol, SolverOptions
+    from .protocol import Protocol
+    from .simulate import SolverOptions
+    from .studies import sensitivity
 
     if args.store_float32 and not args.nest_intervals:
         raise InputError("--store-float32 needs --nest-intervals (it stores the nested reverse pass's states)")
@@ -413,7 +464,7 @@ def cmd_sensitivity(args) -> int:
     io.check_output_folder(args.out, args.overwrite)
     grid = None if args.grid is None else Grid(*args.grid)
     options = SolverOptions(nest_intervals=args.nest_intervals, store_float32=args.store_float32)
-    table = sweep.sensitivities(params, protocol, args.t_end, grid=grid, options=options)
+    table = sensitivity.sensitivities(params, protocol, args.t_end, grid=grid, options=options)
     names = list(next(iter(table.values())))
     print(f"d ln(output)/d ln(parameter) at t = {args.t_end:g} s, {args.regime} culture")
     print(f"{'parameter':22s}" + "".join(f"{k:>20s}" for k in table))
@@ -432,8 +483,7 @@ def main(argv=None) -> int:
     if unknown:
         from .params import suggest
 
-        command = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
-        flags = [o for a in command._actions for o in a.option_strings if o.startswith("--")]
+        flags = sorted(set(re.findall(r"--[a-z][\w-]*", parser.commands[args.command].format_help())) - {"--help"})
         hint = suggest(unknown[0].split("=")[0], flags)
         hint = f" ({hint})" if hint.startswith("did you mean") else f"; see jaxtissue {args.command} --help"
         print(f"jaxtissue: error: unrecognized arguments: {' '.join(unknown)}{hint}", file=sys.stderr)
@@ -441,7 +491,7 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except InputError as err:
-        print(f"jaxtissue: error: {err}", file=sys.stderr)
+        print(f"jaxtissue: error: {as_flags(str(err))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaxtissue: interrupted; nothing was written", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""The two time scales (MODEL.md §5): ECM → beam properties; one loading cycle → the
+"""The two time scales (docs/model.md §5): ECM → beam properties; one loading cycle → the
 lumped transport that the growth model sees, frozen over a growth interval.
 
 Two lumping rules, both a function of the cycle's seepage velocity v_f scaled by the
@@ -10,7 +10,9 @@ lumping constant C:
 * `"paper"`: the paper's literal rule (eq. 2.15), an advective velocity
   v̂ = (C/T) ∫₀ᵀ v_f dt, signed, over one cycle from rest. Its mean over a nearly
   periodic cycle nearly cancels, and what is left is symmetric about the mid-plane and
-  can *reduce* supply (MODEL.md §5's note; `jaxtissue reproduce` reports both).
+  can *reduce* supply (docs/model.md §5; `jaxtissue reproduce` reports both).
+
+The beam works in SI units (`Params.si()`), the growth grid in cm and cm/s.
 """
 
 from __future__ import annotations
@@ -20,16 +22,14 @@ import jax.numpy as jnp
 
 from .beam import Beam, BeamGrid, Geometry, Material
 from .grid import Grid
-from .growth import State, Transport
-from .params import Params
-
-RULES = ("dispersive", "paper")
+from .params import CM_PER_M, Params
+from .state import State, Transport
 
 
-def beam_nodes_x_cm(p: Params, beam_grid: BeamGrid):
-    """Reference x (cm, −L/2..L/2) of the beam's nodes."""
-    L_cm = p.length_mm / 10.0
-    return beam_grid.node_s(L_cm) - 0.5 * L_cm
+def beam_nodes_x_m(p: Params, beam_grid: BeamGrid):
+    """Reference x (m, −L/2..L/2) of the beam's nodes."""
+    L = p.si().length_m
+    return beam_grid.node_s(L) - 0.5 * L
 
 
 def _to_x(values_nodes, x_from, x_to):
@@ -39,28 +39,30 @@ def _to_x(values_nodes, x_from, x_to):
 
 def beam_from_ecm(y: State, p: Params, grid: Grid, beam_grid: BeamGrid, pins: str, fibre_law: str) -> Beam:
     """The beam whose sections carry the current ECM (growth cells → interior nodes)."""
-    x_nodes = beam_nodes_x_cm(p, beam_grid)[1:-1]
+    si = p.si()
+    x_nodes = beam_nodes_x_m(p, beam_grid)[1:-1]
     if grid.nx == 1:  # uniform along the strip
         m_sections = jnp.broadcast_to(y.m, (x_nodes.shape[0], grid.ny))
     else:
-        m_sections = _to_x(y.m, grid.x_centres(p.length_mm / 10.0), x_nodes)
-    return Beam(Geometry.from_params(p, pins), Material.from_ecm(m_sections, p), beam_grid, fibre_law=fibre_law)
+        m_sections = _to_x(y.m, grid.x_centres(si.length_m), x_nodes)
+    return Beam(Geometry.from_params(si, pins), Material.from_ecm(m_sections, si), beam_grid, fibre_law=fibre_law)
 
 
 def lumped_transport(cycle, p: Params, grid: Grid, beam_grid: BeamGrid, rule: str, pins: str) -> Transport:
     """The cycle's lumped transport on the growth grid (module docstring), cm/s, cm²/s."""
-    x_nodes = beam_nodes_x_cm(p, beam_grid)
-    x_cells = grid.x_centres(p.length_mm / 10.0)
+    si = p.si()
+    x_nodes = beam_nodes_x_m(p, beam_grid)
+    x_cells = grid.x_centres(si.length_m)
 
     def to_growth(sections):  # (n_segments − 1, ny) in m/s → (nx, ny) in cm/s
         ends = jnp.zeros_like(sections[:1]) if pins == "centroid" else None
         first = ends if ends is not None else sections[:1]
         last = ends if ends is not None else sections[-1:]
-        nodes = jnp.concatenate([first, sections, last]) * 100.0
+        nodes = jnp.concatenate([first, sections, last]) * CM_PER_M
         return _to_x(nodes, x_nodes, x_cells)
 
     C = p.lumping_C
     if rule == "dispersive":
-        h_cm = p.thickness_mm / 10.0
+        h_cm = si.thickness_m * CM_PER_M
         return Transport(dispersion=C * h_cm * to_growth(cycle.mean_abs_vy))
     return Transport(vx=C * to_growth(cycle.mean_vx), vy=C * to_growth(cycle.mean_vy))

@@ -1,4 +1,4 @@
-"""Experimental data: Engelmayr et al. (2005, 2008), mean ± SD (MODEL.md §6), and a
+"""Experimental data: Engelmayr et al. (2005, 2008), mean ± SD (docs/model.md §6), and a
 reader for measurement tables laid out as PEtab's (observableId,
 simulationConditionId, time, measurement, noiseParameters)."""
 
@@ -10,16 +10,11 @@ import pathlib
 from typing import NamedTuple
 
 from .params import suggest
+from .protocol import THREE_WEEKS_S
+from .result import MEASURABLE, OUTPUTS
 
-THREE_WEEKS_S = 1.8144e6
-
-QUANTITIES = {
-    "dna_ug_per_g": "ug/g",
-    "collagen_mg_per_g": "mg/g",
-    "E_eff_kPa": "kPa",
-    "post_force_max_N": "N",
-}
-"""Observables that can be compared with data (the `Result`/summary keys) and units."""
+QUANTITIES = {k: OUTPUTS[k].unit for k in MEASURABLE}
+"""Observables that can be compared with data (the `Result` keys) and their units."""
 
 
 class Observation(NamedTuple):

@@ -1,4 +1,4 @@
-"""The structured finite-volume grid over the reference strip Ω (MODEL.md §1).
+"""The structured finite-volume grid over the reference strip Ω (docs/model.md §1).
 
 Cells are uniform: `nx` along the length x ∈ (−L/2, L/2), `ny` across the thickness
 y ∈ (−h/2, h/2). `nx = 1` is the 1-D transmural problem. Sizes are static; the
@@ -11,6 +11,11 @@ import equinox as eqx
 import jax.numpy as jnp
 
 
+DEFAULT_SHAPES = {"static": (1, 40), "flex": (50, 40)}
+"""The default growth grid (nx, ny) of each regime: static culture is 1-D across the
+thickness (docs/model.md §2); flexure needs x-resolution where the curvature varies."""
+
+
 class Grid(eqx.Module):
     """Cell counts of the growth grid: `nx` along the length, `ny` across the thickness."""
 
@@ -21,6 +26,12 @@ class Grid(eqx.Module):
         for name, value, low in (("nx", self.nx, 1), ("ny", self.ny, 3)):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"grid {name} = {value!r} must be an integer >= {low}")
+
+    @classmethod
+    def default(cls, regime: str) -> "Grid":
+        """The default grid of a regime ("static" or "flex", `DEFAULT_SHAPES`)."""
+        nx, ny = DEFAULT_SHAPES[regime]
+        return cls(nx=nx, ny=ny)
 
     @property
     def shape(self) -> tuple[int, int]:

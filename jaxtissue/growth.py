@@ -1,4 +1,4 @@
-"""The triphasic growth model (MODEL.md §2): O2 o, cells c, ECM m on the growth grid.
+"""The triphasic growth model (docs/model.md §2): O2 o, cells c, ECM m on the growth grid.
 
 `GrowthModel` is the right-hand side `(t, y, args) -> dy` of
 
@@ -7,8 +7,8 @@
     ∂m/∂t = k_m(o) c (1 − m)                                             (2.5, A.3)
 
 with o = o_ext on the two surfaces, no flux of c anywhere and no flux of o through the
-posts (§2). The lumped transport of the conditioning cycle (velocity v̂ and
-dispersivity D_disp, MODEL.md §5) enters through `Transport`; static culture has none.
+posts (docs/model.md §2). The lumped transport of the conditioning cycle (velocity v̂ and
+dispersivity D_disp, docs/model.md §5) enters through `Transport`; static culture has none.
 """
 
 from __future__ import annotations
@@ -19,41 +19,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import operators as ops
-from ._types import Field
+from ._custom_types import Field
 from .grid import Grid
+from .growth_jacobian import GrowthJacobian, ShiftedFactor
+from .numerics import AbstractStructuredField
 from .params import Coefficients, moser_aiba
-
-
-class State(eqx.Module):
-    """Non-dimensional fields on the growth grid (MODEL.md §2)."""
-
-    o: Field
-    c: Field
-    m: Field
-
-    @classmethod
-    def initial(cls, coeffs: Coefficients, grid: Grid) -> "State":
-        """o = o_ext, c = 1, m = 0 everywhere (MODEL.md §2)."""
-        ones = jnp.ones(grid.shape)
-        return cls(o=coeffs.o_ext * ones, c=ones, m=0.0 * ones)
-
-
-class Transport(eqx.Module):
-    """Lumped transport of a conditioning cycle, frozen over a growth interval (§5):
-    cell-centred velocity (cm/s) and an added O2 dispersivity (cm²/s). A part that is
-    None is absent (not computed with zeros): the dispersive rule has no velocity."""
-
-    vx: Field | None = None
-    vy: Field | None = None
-    dispersion: Field | None = None
-
-    def __check_init__(self):
-        if (self.vx is None) != (self.vy is None):
-            raise ValueError("Transport needs both velocity components vx and vy, or neither")
+from .state import State, Transport
 
 
 def o2_diffusivity(m, coeffs: Coefficients):
-    """D_o(m) of the Chang unit cell (A.4, as reconstructed in MODEL.md §2), cm²/s."""
+    """D_o(m) of the Chang unit cell (A.4, as reconstructed in docs/model.md §2), cm²/s."""
     k, psi = coeffs.kappa, coeffs.psi
     num = 9 * k * m - 6 * m * (1 - m) * (k - 1) + 2 * (1 - m) * k * psi
     den = 9 * m + 3 * m * (1 - m) * (k - 1) + (2 + m) * k * psi
@@ -87,13 +62,14 @@ def has_cell_transport(p) -> bool:
     return not (zero(p.D_c) and zero(p.chi))
 
 
-class GrowthModel(eqx.Module):
+class GrowthModel(AbstractStructuredField):
     """The right-hand side of the growth system (module docstring), as a callable pytree.
 
     `advection` chooses the scheme for v̂·∇o: `"limited"` (MUSCL, van Leer; second
     order) or `"upwind"` (first order). `cell_transport=False` drops the cell flux
     (motility, chemotaxis): for D_c = χ = 0 known before tracing (`has_cell_transport`),
-    where it is identically zero.
+    where it is identically zero. `o2_sweeps`: the O2 solve of `shifted_factor` in 2-D,
+    sweeps of line relaxation or 0 for block elimination (`numerics.line_sweeps`).
     """
 
     coeffs: Coefficients
@@ -101,6 +77,7 @@ class GrowthModel(eqx.Module):
     transport: Transport = eqx.field(default_factory=Transport)
     advection: str = eqx.field(static=True, default="limited")
     cell_transport: bool = eqx.field(static=True, default=True)
+    o2_sweeps: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
         if self.advection not in ("limited", "upwind"):
@@ -141,7 +118,15 @@ class GrowthModel(eqx.Module):
         `linsolve` probes exactly (the limiter's wider stencil would alias)."""
         if self.transport.vx is None or self.advection == "upwind":
             return self
-        return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport)
+        return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport, self.o2_sweeps)
+
+    def shifted_factor(self, t, y: State, args, a) -> ShiftedFactor:
+        """`a I − J̃` at y, factored (`growth_jacobian`): J̃ is probed from the JVP of
+        `for_jacobian()` and held constant under differentiation (a W-method keeps its
+        order for any J̃: no second derivatives)."""
+        _, jvp = jax.linearize(lambda z: self.for_jacobian()(t, z, args), y)
+        jac = jax.lax.stop_gradient(GrowthJacobian.probe(jvp, self.grid.shape))
+        return jac.factor(a, self.o2_sweeps)
 
     def cell_flux_divergence(self, o, c) -> Field:
         """−∇·J_c with J_c = −D_c ∇c + χ c (c_max − c) ∇o and J_c = 0 on every face."""

@@ -1,4 +1,6 @@
-"""Files: result datasets, parameter TOML files, summaries, and atomic output folders."""
+"""Files: reading TOML input, parameter files, JSON summaries, NetCDF datasets, and
+atomic output folders (results appear complete or not at all). `InputError` is the
+one-line error of every mistake in a user's input."""
 
 from __future__ import annotations
 
@@ -15,52 +17,8 @@ import numpy as np
 
 from .params import FIELDS, Params, suggest
 
-UNITS = {
-    "dna_ug_per_g": ("ug/g", "DNA content per wet weight (A.24)"),
-    "collagen_mg_per_g": ("mg/g", "collagen content per wet weight (A.24)"),
-    "E_eff_kPa": ("kPa", "effective flexural modulus 12 EI/(h^3 d) (A.25)"),
-    "EI_N_m2": ("N m^2", "flexural rigidity at the mid-section (A.25)"),
-    "post_force_max_N": ("N", "peak post force of a loading cycle with the ECM of that time (0: static)"),
-    "surface_strain_max": ("1", "peak surface fibre strain of that loading cycle (0: static)"),
-    "profile_o": ("1", "O2 o = rho_o/(5 rho_o,ext) at the mid-section"),
-    "profile_c": ("1", "cell density c = rho_c/rho_c,seed at the mid-section"),
-    "profile_m": ("1", "ECM m = rho_m/rho_m,max at the mid-section"),
-    # the final 2-D fields (`Result.final`); every name above is a time series
-    "o": ("1", "final O2 field"),
-    "c": ("1", "final cell-density field"),
-    "m": ("1", "final ECM field"),
-}
-
-
-SERIES = tuple(k for k in UNITS if k not in ("o", "c", "m"))
-"""The `Result` fields with a leading time axis (scalars per time, then profiles)."""
-
-
 class InputError(ValueError):
     """A user's input is wrong; the message is one line naming what and why."""
-
-
-def result_to_xarray(result):
-    """The `Result` as an `xarray.Dataset`; units and the parameters in attributes."""
-    import xarray as xr
-
-    series = {k: (("time_s", "y_cm")[: np.ndim(getattr(result, k))], np.asarray(getattr(result, k))) for k in SERIES}
-    fields = {k: (("x_cm", "y_cm"), np.asarray(getattr(result.final, k))) for k in ("o", "c", "m")}
-    ds = xr.Dataset(
-        {**series, **fields},
-        coords=dict(time_s=np.asarray(result.ts), x_cm=np.asarray(result.x_cm), y_cm=np.asarray(result.y_cm)),
-    )
-    for name, (unit, doc) in UNITS.items():
-        ds[name].attrs.update(units=unit, long_name=doc)
-    ds["time_s"].attrs.update(units="s", long_name="time since seeding")
-    ds["x_cm"].attrs.update(units="cm", long_name="position along the strip (cell centre)")
-    ds["y_cm"].attrs.update(units="cm", long_name="position across the thickness (cell centre)")
-    ds.attrs.update(result.params.as_dict())
-    ds.attrs["solver_steps"] = int(np.asarray(result.num_steps))
-    ds.attrs["solver_failed"] = int(bool(np.asarray(result.failed)))
-    ds.attrs["status"] = int(np.asarray(result.status))
-    ds.attrs["t_reached_s"] = float(np.asarray(result.t_reached_s))
-    return ds
 
 
 def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
@@ -132,22 +90,7 @@ def params_from_table(table: dict, where: str, base: Params | None = None) -> Pa
     return make_params(changes, base, where=where)
 
 
-def parse_assignment(text: str) -> tuple[str, float]:
-    """`NAME=VALUE` from the command line."""
-    name, sep, value = text.partition("=")
-    name = name.strip()
-    if not sep or not name:
-        raise InputError(f"--set {text!r}: expected NAME=VALUE")
-    if name not in FIELDS:
-        raise InputError(f"--set {name}: unknown parameter; {suggest(name, FIELDS)}")
-    try:
-        number = float(value)
-    except ValueError:
-        raise InputError(f"--set {name}={value}: {value!r} is not a number ({FIELDS[name].unit})") from None
-    return name, number
-
-
-def make_params(changes: dict, base: Params | None = None, where: str = "--set") -> Params:
+def make_params(changes: dict, base: Params | None = None, where: str = "parameters") -> Params:
     """Validated parameters; a bad value is an `InputError` naming where it came from."""
     base = Params() if base is None else base
     try:
@@ -198,19 +141,20 @@ def atomic_write(path, write) -> None:
 
 
 def check_output_folder(out, overwrite: bool) -> pathlib.Path:
-    """Fail early (an `InputError`) if `out` cannot be written or would be clobbered."""
+    """Fail early (an `InputError`) if `out` cannot be written or would be clobbered
+    (a non-empty folder, unless `overwrite`)."""
     out = pathlib.Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a folder")
+        raise InputError(f"`out` {out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"--out {out}: folder exists and is not empty (pass --overwrite to replace it)")
+        raise InputError(f"`out` {out}: folder exists and is not empty (pass `overwrite` to replace it)")
     parent = out.resolve().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise InputError(f"--out {out}: cannot create folder {parent} ({err.strerror})") from None
+        raise InputError(f"`out` {out}: cannot create folder {parent} ({err.strerror})") from None
     if not os.access(parent, os.W_OK):
-        raise InputError(f"--out {out}: cannot write in {parent}")
+        raise InputError(f"`out` {out}: cannot write in {parent}")
     return out
 
 

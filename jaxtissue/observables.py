@@ -1,21 +1,22 @@
-"""What is compared with experiment (MODEL.md §3): bulk assays, mid-section profiles and
-the flexural rigidity, from a growth `State`."""
+"""What is compared with experiment (docs/model.md §3): bulk assays, mid-section
+profiles and the flexural rigidity, each a function `(state, params, grid)` of a growth
+`State` (the output registry, `result.OUTPUTS`, lists them with their units)."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
 from .grid import Grid
-from .growth import State
 from .params import Params
+from .state import State
 
 
-def dna_ug_per_g(y: State, p: Params):
+def dna_ug_per_g(y: State, p: Params, grid: Grid):
     """DNA assay, µg/g wet weight: 536 × mean(c) (A.24, §3)."""
     return p.dna_ug_g_per_c * jnp.mean(y.c, axis=(-2, -1))
 
 
-def collagen_mg_per_g(y: State, p: Params):
+def collagen_mg_per_g(y: State, p: Params, grid: Grid):
     """Collagen assay, mg/g wet weight: 108.3 × mean(m) (A.24, §3)."""
     return p.rho_m_max_mg_g * jnp.mean(y.m, axis=(-2, -1))
 
@@ -29,18 +30,17 @@ def flexural_rigidity_N_m2(y: State, p: Params, grid: Grid):
     """EI at the mid-section, N·m² (A.25, no strain stiffening):
     EI = E_s h³ d/12 + Ē_m0 d ∫ y² ρ_m(0, y) dy, ρ_m = 108.3e3 m µg/g,
     integrating y² exactly over each cell of the piecewise-constant field."""
-    h = p.thickness_mm * 1e-3
-    d = p.depth_mm * 1e-3
+    si = p.si()
+    h, d = si.thickness_m, si.depth_m
     faces = grid.y_faces(h)  # metres
     y2_cell = (faces[1:] ** 3 - faces[:-1] ** 3) / 3.0
-    rho_m = p.rho_m_max_mg_g * 1e3 * mid_profile(y.m, grid)  # µg/g ww
-    scaffold = p.E_s_kPa * 1e3 * h**3 * d / 12.0
-    ecm = p.E_m0_kPa_per_ug_g * 1e3 * d * jnp.sum(y2_cell * rho_m, axis=-1)
+    rho_m = si.rho_m_max_ug_g * mid_profile(y.m, grid)  # µg/g ww
+    scaffold = si.E_s_Pa * h**3 * d / 12.0
+    ecm = si.E_m0_Pa_per_ug_g * d * jnp.sum(y2_cell * rho_m, axis=-1)
     return scaffold + ecm
 
 
-def effective_modulus_kPa(EI_N_m2, p: Params):
+def effective_modulus_kPa(y: State, p: Params, grid: Grid):
     """E_eff = 12 EI/(h³ d), kPa: the homogeneous beam's modulus (§3, §6)."""
-    h = p.thickness_mm * 1e-3
-    d = p.depth_mm * 1e-3
-    return 12.0 * EI_N_m2 / (h**3 * d) / 1e3
+    si = p.si()
+    return 12.0 * flexural_rigidity_N_m2(y, p, grid) / (si.thickness_m**3 * si.depth_m) / 1e3

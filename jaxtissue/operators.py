@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._types import FaceFieldX, FaceFieldY, Field
+from jaxtyping import Array, Float
+
+from ._custom_types import FaceFieldX, FaceFieldY, Field
 
 
 def safe_div(num, den):
@@ -55,7 +57,7 @@ def gradient_y(u: Field, dy, boundary) -> FaceFieldY:
     return jnp.concatenate([bottom, inner, top], axis=1)
 
 
-def divergence(flux_x: FaceFieldX, flux_y: FaceFieldY, dx, dy) -> Field:
+def divergence(flux_x: Float[Array, "*batch nx_faces ny"], flux_y: Float[Array, "*batch nx ny_faces"], dx, dy) -> Field:
     """Cell-average divergence of a face flux."""
     return (flux_x[1:] - flux_x[:-1]) / dx + (flux_y[:, 1:] - flux_y[:, :-1]) / dy
 

@@ -1,8 +1,11 @@
-"""Model parameters in physical units (MODEL.md §7) and the solver's non-dimensional view.
+"""Model parameters in physical units (docs/model.md §7), their SI view (`SIParams`,
+for the mechanics and the observables) and the growth solver's non-dimensional view
+(`Coefficients`).
 
 Every number a user may want to change lives in [`Params`][] as an ordinary float field,
 so that `jax.grad` reaches all of them. `FIELDS` documents each one (unit, allowed range,
-source); it drives validation, the `jaxtissue params` table and the TOML files.
+source); it drives validation, the `jaxtissue params` table and the TOML files. Units
+are converted here and nowhere else.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ class FieldInfo(NamedTuple):
 
 
 inf = math.inf
+CM_PER_M = 100.0
 
 
 def _pos(unit: str, doc: str) -> FieldInfo:
@@ -96,7 +100,7 @@ FIELDS: dict[str, FieldInfo] = {
 
 
 class Params(eqx.Module):
-    """All model parameters in physical units, with the paper's defaults (MODEL.md §7).
+    """All model parameters in physical units, with the paper's defaults (docs/model.md §7).
 
     Every field is a float (or a float array under `vmap`) and differentiable. See
     `jaxtissue.params.FIELDS` (or `jaxtissue params`) for each one's unit, range and
@@ -162,6 +166,44 @@ class Params(eqx.Module):
         """Field name -> Python float (concrete parameters only)."""
         return {name: float(getattr(self, name)) for name in FIELDS}
 
+    def si(self) -> "SIParams":
+        """The dimensional fields in SI units (`SIParams`)."""
+        return SIParams(
+            length_m=self.length_mm * 1e-3,
+            thickness_m=self.thickness_mm * 1e-3,
+            depth_m=self.depth_mm * 1e-3,
+            E_s_Pa=self.E_s_kPa * 1e3,
+            E_m0_Pa_per_ug_g=self.E_m0_kPa_per_ug_g * 1e3,
+            rho_m_max_ug_g=self.rho_m_max_mg_g * 1e3,
+            nu_s=self.nu_s,
+            nu_t=self.nu_t,
+            phi_s=self.phi_s,
+            phi_t=self.phi_t,
+            k_hyd_s_m_s=self.k_hyd_s_cm_s * 1e-2,
+            k_hyd_t_m_s=self.k_hyd_t_cm_s * 1e-2,
+            p_ext_Pa=self.p_ext_kPa * 1e3,
+        )
+
+
+class SIParams(eqx.Module):
+    """The parameters of the mechanics (docs/model.md §4) and of the flexural rigidity
+    (§3) in SI units: m, Pa, m/s (`Params.si()`); ECM concentrations in µg/g ww, as
+    the stiffening Ē_m0 is per µg/g."""
+
+    length_m: jax.Array
+    thickness_m: jax.Array
+    depth_m: jax.Array
+    E_s_Pa: jax.Array
+    E_m0_Pa_per_ug_g: jax.Array
+    rho_m_max_ug_g: jax.Array
+    nu_s: jax.Array
+    nu_t: jax.Array
+    phi_s: jax.Array
+    phi_t: jax.Array
+    k_hyd_s_m_s: jax.Array
+    k_hyd_t_m_s: jax.Array
+    p_ext_Pa: jax.Array
+
 
 def concrete_value(value):
     """`value` as a NumPy array, or None if it is traced (then checks wait for later)."""
@@ -185,7 +227,7 @@ def suggest(name: str, choices) -> str:
 
 
 def paper_parameters(**changes) -> Params:
-    """The paper's parameter set (MODEL.md §7), optionally with some fields changed."""
+    """The paper's parameter set (docs/model.md §7), optionally with some fields changed."""
     return Params().replace(**changes) if changes else Params()
 
 
@@ -230,9 +272,9 @@ def moser_aiba_argmax(n, o_c, k_i):
 
 class Coefficients(eqx.Module):
     """The solver's view of `Params`: lengths in cm, concentrations non-dimensional
-    (o = ρ_o/(5ρ_o,ext), c = ρ_c/ρ_c,seed, m = ρ_m/ρ_m,max; MODEL.md §2), time in s.
+    (o = ρ_o/(5ρ_o,ext), c = ρ_c/ρ_c,seed, m = ρ_m/ρ_m,max; docs/model.md §2), time in s.
 
-    `k_p` is derived from `k_c_max` (MODEL.md §2): k_p = (k_c,max + k_a) / max_o g(o)
+    `k_p` is derived from `k_c_max` (docs/model.md §2): k_p = (k_c,max + k_a) / max_o g(o)
     with g the Moser–Aiba factor of A.6.
     """
 
@@ -258,7 +300,7 @@ class Coefficients(eqx.Module):
 
 
 def proliferation_prefactor(p: Params):
-    """k_p derived from k_c,max (MODEL.md §2)."""
+    """k_p derived from k_c,max (docs/model.md §2)."""
     o_star = moser_aiba_argmax(p.n_moser, p.o_c, p.k_i)
     g_max = jnp.where(jnp.asarray(p.k_i) > 0, moser_aiba(o_star, p.n_moser, p.o_c, p.k_i), 1.0)
     return (p.k_c_max + p.k_a) / g_max

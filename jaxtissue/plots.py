@@ -1,4 +1,5 @@
-"""Figures a user would otherwise draw by hand (the paper's Figs 5, 9 and 10a)."""
+"""Figures a user would otherwise draw by hand (the paper's Figs 5–10, calibration and
+optimisation diagnostics). Each takes what it shows as arguments and a path to write."""
 
 from __future__ import annotations
 
@@ -9,13 +10,17 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .data import observations  # noqa: E402
+from .result import OUTPUTS  # noqa: E402
 
 DAY_S = 86400.0
-SERIES = (
-    ("dna_ug_per_g", "DNA (µg/g ww)"),
-    ("collagen_mg_per_g", "collagen (mg/g ww)"),
-    ("E_eff_kPa", "effective modulus E (kPa)"),
-)
+_PANELS = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa")
+"""The series of `time_series`, labelled from `OUTPUTS`."""
+
+
+def _label(name: str) -> str:
+    """An axis label from the output registry: description (unit)."""
+    out = OUTPUTS[name]
+    return f"{out.description.split(' (')[0]} ({out.unit})"
 
 
 def profile_days(ts, wanted=(0, 3, 7, 14, 21)):
@@ -54,7 +59,7 @@ def time_series(results: dict, path):
     for (label, result), colour in zip(results.items(), plt.cm.tab10.colors):
         days = np.asarray(result.ts) / DAY_S
         regime = "flex" if label.startswith("flex") else "static"
-        for ax, (key, ylabel) in zip(axes, SERIES):
+        for ax, key in zip(axes, _PANELS):
             ax.plot(days, np.asarray(getattr(result, key)), color=colour, label=f"model, {label}")
             if label in ("static", "flex"):
                 obs = [o for o in observations(key, regime) if o.regime == regime]
@@ -64,8 +69,8 @@ def time_series(results: dict, path):
                         fmt="o", color=colour, capsize=4, label=f"Engelmayr, {regime}",
                     )
             ax.set_xlabel("time (days)")
-            ax.set_ylabel(ylabel)
-    for ax, (key, _) in zip(axes, SERIES):
+            ax.set_ylabel(_label(key))
+    for ax, key in zip(axes, _PANELS):
         seeded = [o for o in observations(key, "static") if o.regime == "seeded"]
         if seeded:
             ax.errorbar([0.0], [seeded[0].mean], yerr=[seeded[0].sd], fmt="s", color="k", capsize=4, label="Engelmayr, seeded")
@@ -237,70 +242,65 @@ def sensitivities(table, path, title=""):
     plt.close(fig)
 
 
-def protocol_landscape(study, path):
-    """The objective over the grid of constant protocols (infeasible points hatched),
-    each start's optimisation path, the optimum, the best grid point and the paper's
-    protocol. For a schedule the path shows each stage's (period, displacement)."""
-    from .optimization import BASELINE, OBJECTIVES
-
-    d, g, o = study.design, study.grid, study.optimum
+def protocol_landscape(periods_s, displacements_mm, objective, feasible, paths, best, grid_best, baseline, label, path):
+    """The objective over a grid of constant protocols (`objective` and `feasible`:
+    (periods, displacements); infeasible points hatched), each start's optimisation
+    path (`paths`: (iterates, starts, stages, 2); for a schedule each stage's (period,
+    displacement)), the optimum `best` (stages, 2) or None, the best grid point and
+    the reference protocol (dicts of period_s and post_displacement_mm)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
-    P, U = np.meshgrid(g.periods_s, g.displacements_mm, indexing="ij")
-    cs = ax.contourf(P, U, g.objective, levels=20, cmap="viridis")
-    fig.colorbar(cs, ax=ax, label=f"{OBJECTIVES[d.objective].label} ({OBJECTIVES[d.objective].unit})")
-    if not np.all(g.feasible):
-        ax.contourf(P, U, (~g.feasible).astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"])
-        ax.contour(P, U, g.feasible.astype(float), levels=[0.5], colors="w", linewidths=1.0)
-    for i in range(o.path.shape[1]):
-        for k in range(d.stages):
-            ax.plot(o.path[:, i, k, 0], o.path[:, i, k, 1], "-", color="w", lw=0.8, alpha=0.8)
-            ax.plot(o.path[0, i, k, 0], o.path[0, i, k, 1], "o", color="w", ms=3)
-    if o.best is not None:
-        ax.plot(o.best[:, 0], o.best[:, 1], "*", color="r", ms=14, mec="k", label="gradient optimum", zorder=5)
-    if g.best is not None:
-        ax.plot(g.best["period_s"], g.best["post_displacement_mm"], "s", mfc="none", mec="orange", ms=10, mew=2, label="best grid point")
-    ax.plot(BASELINE["period_s"], BASELINE["post_displacement_mm"], "D", color="k", ms=6, label="paper (1 Hz, 5 mm)")
+    P, U = np.meshgrid(periods_s, displacements_mm, indexing="ij")
+    cs = ax.contourf(P, U, objective, levels=20, cmap="viridis")
+    fig.colorbar(cs, ax=ax, label=label)
+    if not np.all(feasible):
+        ax.contourf(P, U, (~feasible).astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"])
+        ax.contour(P, U, feasible.astype(float), levels=[0.5], colors="w", linewidths=1.0)
+    for i in range(paths.shape[1]):
+        for k in range(paths.shape[2]):
+            ax.plot(paths[:, i, k, 0], paths[:, i, k, 1], "-", color="w", lw=0.8, alpha=0.8)
+            ax.plot(paths[0, i, k, 0], paths[0, i, k, 1], "o", color="w", ms=3)
+    if best is not None:
+        ax.plot(best[:, 0], best[:, 1], "*", color="r", ms=14, mec="k", label="gradient optimum", zorder=5)
+    if grid_best is not None:
+        ax.plot(grid_best["period_s"], grid_best["post_displacement_mm"], "s", mfc="none", mec="orange", ms=10, mew=2, label="best grid point")
+    ax.plot(baseline["period_s"], baseline["post_displacement_mm"], "D", color="k", ms=6, label="paper (1 Hz, 5 mm)")
     ax.set(xscale="log", xlabel="period T (s)", ylabel="post displacement u_max (mm)",
-           title="objective over constant protocols" + ("" if np.all(g.feasible) else " (hatched: infeasible)"))
+           title="objective over constant protocols" + ("" if np.all(feasible) else " (hatched: infeasible)"))
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def optimisation_history(study, path):
-    """Objective per Adam step for every start (feasible iterates filled), with the
-    best grid point and the paper's protocol for reference."""
-    from .optimization import OBJECTIVES
-
-    d, o = study.design, study.optimum
+def optimisation_history(objective, feasible, grid_best, baseline, title, unit, path):
+    """Objective per Adam step for every start (`objective`, `feasible`: (steps,
+    starts); feasible iterates filled), with the best grid point's objective (or None)
+    and the reference protocol's for comparison."""
     fig, ax = plt.subplots(figsize=(6, 3.8))
-    steps = np.arange(o.objective.shape[0])
-    for i in range(o.objective.shape[1]):
-        line, = ax.plot(steps, o.objective[:, i], "-", lw=1, label=f"start {i}")
-        ax.plot(steps[o.feasible[:, i]], o.objective[o.feasible[:, i], i], "o", ms=3, color=line.get_color())
-    if study.grid.best is not None:
-        ax.axhline(study.grid.best_objective, color="orange", ls="--", label="best grid point")
-    ax.axhline(study.baseline_objective, color="k", ls=":", label="paper protocol")
-    ax.set(xlabel="Adam step", ylabel=f"{OBJECTIVES[d.objective].unit}", title=f"{OBJECTIVES[d.objective].label} (dots: constraints met)")
+    steps = np.arange(objective.shape[0])
+    for i in range(objective.shape[1]):
+        line, = ax.plot(steps, objective[:, i], "-", lw=1, label=f"start {i}")
+        ax.plot(steps[feasible[:, i]], objective[feasible[:, i], i], "o", ms=3, color=line.get_color())
+    if grid_best is not None:
+        ax.axhline(grid_best, color="orange", ls="--", label="best grid point")
+    ax.axhline(baseline, color="k", ls=":", label="paper protocol")
+    ax.set(xlabel="Adam step", ylabel=unit, title=f"{title} (dots: constraints met)")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def schedule(study, path):
-    """The optimal schedule's period and post displacement per stage, against the best
-    constant protocol."""
-    d, best = study.design, study.optimum.best
-    if best is None:
-        return
-    weeks = np.arange(d.stages + 1) * d.stage_length_s / (7 * DAY_S)
+def schedule(best, stage_length_s, constant, path):
+    """A schedule's period and post displacement per stage (`best`: (stages, 2)),
+    against the best constant protocol (a dict of period_s and post_displacement_mm,
+    or None)."""
+    weeks = np.arange(best.shape[0] + 1) * stage_length_s / (7 * DAY_S)
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
-    for ax, k, label in ((axes[0], 0, "period T (s)"), (axes[1], 1, "post displacement (mm)")):
+    for ax, k, key, label in ((axes[0], 0, "period_s", "period T (s)"), (axes[1], 1, "post_displacement_mm", "post displacement (mm)")):
         ax.stairs(best[:, k], weeks, lw=2, label="optimal schedule")
-        if study.grid.best is not None:
-            ax.axhline(list(study.grid.best.values())[k], color="orange", ls="--", label="best constant (grid)")
+        if constant is not None:
+            ax.axhline(constant[key], color="orange", ls="--", label="best constant (grid)")
         ax.set(xlabel="stage start (weeks)", ylabel=label)
     axes[0].legend(fontsize=7)
     fig.tight_layout()

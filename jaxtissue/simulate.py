@@ -1,4 +1,5 @@
-"""Culture protocols, the time loop and its `Result` (MODEL.md §2, §3, §5)."""
+"""The staggered time loop of a culture (docs/model.md §2, §5): growth solves, and in
+flexure one loading cycle per coupling interval, into a `Result`."""
 
 from __future__ import annotations
 
@@ -12,103 +13,15 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-from . import observables as obs
 from .beam import BeamGrid, loading_cycle
-from .coupling import RULES, beam_from_ecm, lumped_transport
+from .coupling import beam_from_ecm, lumped_transport
 from .grid import Grid
-from .growth import GrowthModel, State, has_cell_transport
-from .linsolve import line_sweeps
+from .growth import GrowthModel, has_cell_transport
+from .numerics import ROS34PW2, ReproducibleSteps, line_sweeps, replayed_scan
 from .params import Params, concrete_value, nondimensionalise
-from .remat import replayed_scan
-from .solver import ROS34PW2, ReproducibleSteps
-
-THREE_WEEKS_S = 1.8144e6
-"""The experiments' assay time, 21 days (MODEL.md §6)."""
-
-
-class ProtocolValueError(ValueError):
-    """A protocol field out of its range, with `field`, `value` and `allowed` for callers
-    that name the field their own way (the command line's flags)."""
-
-    def __init__(self, field: str, value: float, allowed: str):
-        super().__init__(f"protocol {field} = {value:g} must be {allowed}")
-        self.field, self.value, self.allowed = field, value, allowed
-
-
-class Protocol(eqx.Module):
-    """A culture protocol (MODEL.md §1, §4, §5).
-
-    `Protocol.static()`: no motion. `Protocol.flex(...)`: cyclic flexure with post
-    displacement u_M(t) of eq. A.22; `period_s`, `post_displacement_mm` and
-    `hold_fraction` are differentiable. `lumping` is the coupling rule (`coupling.RULES`),
-    `pins` where the posts hold the strip ("centroid" or "bottom" corners).
-
-    A schedule (`Protocol.schedule(...)`): `period_s` and `post_displacement_mm` hold one
-    value per stage of `stage_length_s` seconds (the last stage lasts to the end); each
-    coupling interval uses the stage that holds its start (`at`). Differentiable like
-    the constant protocol.
-    """
-
-    regime: str = eqx.field(static=True, default="static")
-    period_s: float = 1.0
-    post_displacement_mm: float = 5.0
-    hold_fraction: float = 0.05
-    lumping: str = eqx.field(static=True, default="dispersive")
-    pins: str = eqx.field(static=True, default="centroid")
-    stage_length_s: float | None = eqx.field(static=True, default=None)
-
-    def __check_init__(self):
-        if self.regime not in ("static", "flex"):
-            raise ValueError(f"regime = {self.regime!r}; allowed: 'static', 'flex'")
-        if self.lumping not in RULES:
-            raise ValueError(f"lumping = {self.lumping!r}; allowed: {', '.join(map(repr, RULES))}")
-        if self.pins not in ("centroid", "bottom"):
-            raise ValueError(f"pins = {self.pins!r}; allowed: 'centroid', 'bottom'")
-        checks = (
-            ("period_s", lambda v: v > 0, "> 0 s"),
-            ("post_displacement_mm", lambda v: 0 <= v, ">= 0 mm"),  # below the strip length: `simulate` checks
-            ("hold_fraction", lambda v: (0 <= v) & (v < 0.25), "in [0, 0.25)"),
-        )
-        for name, ok, allowed in checks:
-            value = concrete_value(getattr(self, name))
-            if value is not None and not (np.all(np.isfinite(value)) and np.all(ok(value))):
-                bad = np.ravel(value)[~np.ravel(np.isfinite(value) & ok(np.where(np.isfinite(value), value, 0)))][0]
-                raise ProtocolValueError(name, float(bad), allowed)
-        if self.stage_length_s is not None:
-            if not (isinstance(self.stage_length_s, (int, float)) and math.isfinite(self.stage_length_s) and self.stage_length_s > 0):
-                raise ValueError(f"protocol stage_length_s = {self.stage_length_s!r} must be a positive number of seconds")
-            shapes = {np.shape(self.period_s), np.shape(self.post_displacement_mm)}
-            if len(shapes) != 1 or len(next(iter(shapes))) != 1 or next(iter(shapes))[0] < 1:
-                raise ValueError("a schedule's period_s and post_displacement_mm must be lists of the same length (one value per stage)")
-
-    @classmethod
-    def static(cls) -> "Protocol":
-        return cls(regime="static")
-
-    @classmethod
-    def flex(cls, period_s=1.0, post_displacement_mm=5.0, hold_fraction=0.05, lumping="dispersive", pins="centroid") -> "Protocol":
-        return cls("flex", period_s, post_displacement_mm, hold_fraction, lumping, pins)
-
-    @classmethod
-    def schedule(cls, period_s, post_displacement_mm, stage_length_s=604800.0, hold_fraction=0.05, lumping="dispersive", pins="centroid") -> "Protocol":
-        """Piecewise-constant flexure: stage k (from k·stage_length_s, default weekly)
-        uses period_s[k] and post_displacement_mm[k]."""
-        return cls("flex", jnp.asarray(period_s, float), jnp.asarray(post_displacement_mm, float), hold_fraction, lumping, pins, float(stage_length_s))
-
-    @property
-    def stages(self) -> int:
-        """Number of stages (1 for a constant protocol)."""
-        return 1 if self.stage_length_s is None else int(np.shape(self.period_s)[0])
-
-    def at(self, t_s) -> "Protocol":
-        """The constant protocol in force at time `t_s` (s)."""
-        if self.stage_length_s is None:
-            return self
-        k = jnp.clip(jnp.floor(t_s / self.stage_length_s), 0, self.stages - 1).astype(int)
-        return Protocol(self.regime, self.period_s[k], self.post_displacement_mm[k], self.hold_fraction, self.lumping, self.pins)
-
-    def stage_starts_s(self) -> np.ndarray:
-        return np.arange(self.stages) * (self.stage_length_s or 0.0)
+from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
+from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
+from .state import State
 
 
 class SolverOptions(eqx.Module):
@@ -129,13 +42,13 @@ class SolverOptions(eqx.Module):
     o2_sweeps: int | None = eqx.field(static=True, default=None)
     """2-D grids: sweeps of line relaxation in each step's O2 solve, 0 for block
     elimination, None to choose from the grid and the strip's thickness/length
-    (`linsolve.line_sweeps`: 6 on the default 50 × 40 grid, 0 for cells shorter than
+    (`numerics.line_sweeps`: 6 on the default 50 × 40 grid, 0 for cells shorter than
     h/3). Fewer sweeps approximate the step's Jacobian more coarsely (see
-    `linsolve`): cheaper steps, possibly more of them."""
+    `growth_jacobian`): cheaper steps, possibly more of them."""
     nest_intervals: bool = eqx.field(static=True, default=False)
     """Flex runs, reverse mode: the reverse pass keeps ~√n of the n coupling intervals'
     states instead of all n and each interval's lumped transport (a third of a state),
-    for one more pass of the growth solves (no loading cycle; `remat.replayed_scan`):
+    for one more pass of the growth solves (no loading cycle; `numerics.replayed_scan`):
     for long runs or large grids where memory binds."""
     store_float32: bool = eqx.field(static=True, default=False)
     """With `nest_intervals`: those kept states and transports are stored in float32
@@ -180,125 +93,20 @@ class SolverOptions(eqx.Module):
         return diffrax.StepTo(ts=t0 + span * jnp.concatenate([jnp.zeros(1), frac]))
 
 
-STATUS = {
-    0: ("ok", ""),
-    1: ("the growth solve reached its step limit", "raise --max-steps (SolverOptions.max_steps) or loosen --rtol"),
-    2: ("the beam's Newton solve did not converge in a loading cycle", "try a smaller post displacement or more beam steps per cycle"),
-    3: ("concentrations left their physical bounds (NaN, o/c/m < 0, m > 1 or c > c_max)", "try a tighter --rtol or a finer --grid"),
-    4: ("the growth solve failed", "try a tighter --rtol or a finer --grid"),
-}
-"""`Result.status` codes: (what happened, a hint)."""
-
-BOUNDS_TOL = 1e-4
-"""How far concentrations may leave their bounds before a run is marked failed."""
-
-
-class Result(eqx.Module):
-    """The outputs of `simulate` (MODEL.md §3), at the save times `ts` (s; static, so
-    `result.index(t)` works inside `jit` and `grad`).
-
-    Series have a leading time axis; `profile_*` are mid-section profiles across the
-    thickness (axis `y_cm`); `final` holds the last 2-D fields. `post_force_max_N` and
-    `surface_strain_max` are the peak post force and peak surface fibre strain of a loading
-    cycle with the ECM of that time (0 in static culture).
-    `failed` is True when a solve stopped early or the concentrations left their
-    bounds; `status` says why (`STATUS`) and `t_reached_s` until when the run is valid.
-    """
-
-    ts: tuple = eqx.field(static=True)
-    dna_ug_per_g: jax.Array
-    collagen_mg_per_g: jax.Array
-    E_eff_kPa: jax.Array
-    EI_N_m2: jax.Array
-    post_force_max_N: jax.Array
-    surface_strain_max: jax.Array
-    profile_o: jax.Array
-    profile_c: jax.Array
-    profile_m: jax.Array
-    final: State
-    x_cm: jax.Array
-    y_cm: jax.Array
-    num_steps: jax.Array
-    failed: jax.Array
-    status: jax.Array
-    t_reached_s: jax.Array
-    params: Params
-
-    def failure_message(self) -> str:
-        """One line: what failed, the simulated time reached and a hint ('' if none)."""
-        code = int(self.status)
-        if code == 0:
-            return ""
-        what, hint = STATUS[code]
-        return f"{what}; the run is valid up to t = {float(self.t_reached_s):g} s of {self.ts[-1]:g} s; {hint}"
-
-    def index(self, t_s: float) -> int:
-        """The index of the save time closest to `t_s`."""
-        return int(np.argmin(np.abs(np.asarray(self.ts) - t_s)))
-
-    def to_xarray(self):
-        """An `xarray.Dataset` with units in each variable's attributes."""
-        from .io import result_to_xarray
-
-        return result_to_xarray(self)
-
-
-def interval_bounds(t_end_s: float, coupling_interval_s: float, t_start_s: float = 0.0) -> np.ndarray:
-    """The coupling intervals' bounds: `t_start_s`, every multiple of T_g in between, 3
-    weeks (the assay time, where the interval holding it is split) and `t_end_s`."""
-    n = int(math.floor(t_end_s / coupling_interval_s + 1e-9))
-    ts = set(np.round(np.arange(n + 1) * coupling_interval_s, 9).tolist()) | {t_end_s, t_start_s, THREE_WEEKS_S}
-    return np.array(sorted(t for t in ts if t_start_s <= t <= t_end_s))
-
-
-def save_times(t_end_s: float, coupling_interval_s: float, t_start_s: float = 0.0) -> np.ndarray:
-    """The times a `Result` holds: the interval bounds (every T_g, 3 weeks, the end)."""
-    return interval_bounds(t_end_s, coupling_interval_s, t_start_s)
-
-
 def _growth_code(sol):
-    """`STATUS` code of a growth solve."""
+    """Integer status code (`result.STATUS_ORDER`) of a growth solve."""
     return jnp.where(sol.result == diffrax.RESULTS.successful, 0, jnp.where(sol.result == diffrax.RESULTS.max_steps_reached, 1, 4))
-
-
-def _out_of_bounds(series: dict, params: Params):
-    """Per save time: a profile is non-finite or leaves its bounds by more than BOUNDS_TOL."""
-    o, c, m = series["profile_o"], series["profile_c"], series["profile_m"]
-    c_max = params.c_max
-    bad = ~(jnp.isfinite(o) & jnp.isfinite(c) & jnp.isfinite(m))
-    bad |= (o < -BOUNDS_TOL) | (c < -BOUNDS_TOL) | (m < -BOUNDS_TOL) | (m > 1 + BOUNDS_TOL) | (c > c_max * (1 + BOUNDS_TOL))
-    return jnp.any(bad, axis=-1) | ~jnp.isfinite(series["collagen_mg_per_g"])
-
-
-def _observe(y: State, args):
-    """The `Result` series at one state."""
-    p, grid = args
-    EI = obs.flexural_rigidity_N_m2(y, p, grid)
-    return dict(
-        dna_ug_per_g=obs.dna_ug_per_g(y, p),
-        collagen_mg_per_g=obs.collagen_mg_per_g(y, p),
-        EI_N_m2=EI,
-        E_eff_kPa=obs.effective_modulus_kPa(EI, p),
-        profile_o=obs.mid_profile(y.o, grid),
-        profile_c=obs.mid_profile(y.c, grid),
-        profile_m=obs.mid_profile(y.m, grid),
-    )
-
-
-def _observe_all(states: State, args):
-    """`_observe` at each saved state (a leading time axis)."""
-    return jax.vmap(lambda y: _observe(y, args))(states)
 
 
 def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptions, args, progress=False, checkpoints=16):
     """Integrate the growth system over [t0, t1] (diffrax, `ROS34PW2`); `sol.ys` is the
     state at `ts` (`ts=None`: at t1 only, no dense output). Observables are taken from
-    the saved states afterwards (`_observe_all`), outside the solver's loop and its
+    the saved states afterwards (`result.observe`), outside the solver's loop and its
     checkpointed reverse pass (`checkpoints`, unless `options` sets them)."""
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
     return diffrax.diffeqsolve(
         diffrax.ODETerm(model),
-        ROS34PW2(o2_sweeps=options.o2_sweeps or 0),
+        ROS34PW2(),
         t0=t0,
         t1=t1,
         dt0=options.dt0_s if options.fixed_steps is None else None,
@@ -325,7 +133,7 @@ class _Progress:
 
 
 def flex_cycle(y: State, params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGrid, keep_fields=False):
-    """One loading cycle from rest with the ECM of `y` (MODEL.md §5, step 1)."""
+    """One loading cycle from rest with the ECM of `y` (docs/model.md §5, step 1)."""
     beam = beam_from_ecm(y, params, grid, beam_grid, protocol.pins, "neo-hookean")
     u_max = protocol.post_displacement_mm * 1e-3
     return beam, loading_cycle(beam, protocol.period_s, u_max, protocol.hold_fraction, keep_fields)
@@ -340,11 +148,12 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     args = (params, grid)
     y0 = State.initial(coeffs, grid) if initial_state is None else initial_state
     ts = jnp.asarray(out_times)
+    sweeps = options.o2_sweeps or 0
     if protocol.regime == "static":
-        model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport)
+        model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport, o2_sweeps=sweeps)
         sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
         states = sol.ys
-        series = _observe_all(states, args)
+        series = jax.vmap(lambda y: observe(y, params, grid))(states)
         series["post_force_max_N"] = jnp.zeros(len(out_times))
         series["surface_strain_max"] = jnp.zeros(len(out_times))
         final = jtu.tree_map(lambda x: x[-1], states)
@@ -367,12 +176,13 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         def growth(theta, y, k, transport):
             """The interval's growth solve with the transport frozen."""
             p = theta[0]
-            model = GrowthModel(coeffs=nondimensionalise(p), grid=grid, transport=transport, cell_transport=cell_transport)
+            model = GrowthModel(coeffs=nondimensionalise(p), grid=grid, transport=transport, cell_transport=cell_transport,
+                                o2_sweeps=sweeps)
             sol = growth_solve(model, y, *bounds(k), None, options, (p, grid), checkpoints=8)  # the end state only
             y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
             if progress:
                 jax.debug.callback(_Progress.tick, bounds(k)[1])
-            return y1, dict(series=_observe(y1, (p, grid)), steps=sol.stats["num_steps"], code=_growth_code(sol))
+            return y1, dict(series=observe(y1, p, grid), steps=sol.stats["num_steps"], code=_growth_code(sol))
 
         n_intervals = len(times) - 1
         theta = (params, protocol)
@@ -391,7 +201,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
                 return y1, (cycle, out)
 
             final, (cycles, out) = jax.lax.scan(interval, y0, jnp.arange(n_intervals))
-        start = _observe(y0, args)
+        start = observe(y0, params, grid)
         series = {k: jnp.concatenate([start[k][None], v]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
         series["post_force_max_N"] = jnp.concatenate([cycles["post_force"], last_cycle.post_force_max_N[None]])
@@ -403,26 +213,27 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         if end_only:
             series = {k: v[-1:] for k, v in series.items()}
     # concentrations out of bounds (where the solves themselves succeeded)
-    bad = _out_of_bounds(series, params)
+    bad = out_of_bounds(series, params)
     first_bad = jnp.argmax(bad)
     t_bad = jnp.where(first_bad > 0, ts[jnp.maximum(first_bad - 1, 0)], times[0])  # the last good save time
     code, t_fail = jnp.where((code == 0) & jnp.any(bad), 3, code), jnp.where((code == 0) & jnp.any(bad), t_bad, t_fail)
     t_reached = jnp.where(code == 0, ts[-1], t_fail)
+    x_cm, y_cm = coordinates_cm(params, grid)
     return Result(
         ts=tuple(out_times),
         **series,
         final=final,
-        x_cm=grid.x_centres(coeffs.length_cm),
-        y_cm=grid.y_centres(coeffs.thickness_cm),
+        x_cm=x_cm,
+        y_cm=y_cm,
         num_steps=num_steps,
         failed=code != 0,
-        status=code,
+        status=status_from_code(code),
         t_reached_s=t_reached,
         params=params,
     )
 
 
-def _o2_sweeps(grid: Grid, params: Params) -> int:
+def default_o2_sweeps(grid: Grid, params: Params) -> int:
     """`SolverOptions.o2_sweeps` chosen from the grid and the strip's h/Δx (the largest
     of a batch; the paper's 1 mm × 25 mm strip where they are traced)."""
     h, length = concrete_value(params.thickness_mm), concrete_value(params.length_mm)
@@ -434,10 +245,10 @@ def _o2_sweeps(grid: Grid, params: Params) -> int:
 def simulate(
     params: Params,
     protocol: Protocol | None = None,
-    t_end_s: float = 2.0e6,
+    t_end_s: float = T_END_S,
     grid: Grid | None = None,
     *,
-    coupling_interval_s: float = 2.0e4,
+    coupling_interval_s: float = COUPLING_INTERVAL_S,
     beam: BeamGrid = BeamGrid(),
     options: SolverOptions = SolverOptions(),
     initial_state: State | None = None,
@@ -455,12 +266,12 @@ def simulate(
     - `t_end_s`: end of culture, s (default 2.0e6 s ≈ 3.3 weeks, as the paper).
     - `grid`: the growth grid; default `Grid(1, 40)` (the 1-D transmural problem) for
       static culture and `Grid(50, 40)` for flex.
-    - `coupling_interval_s`: the growth interval T_g (MODEL.md §5); results are saved
+    - `coupling_interval_s`: the growth interval T_g (docs/model.md §5); results are saved
       every T_g, at `t_end_s`, and at exactly 3 weeks when reached, where the interval
       holding it is split. In flex culture one loading cycle is solved per interval.
     - `beam`: the beam's resolution (`BeamGrid`).
     - `options`: tolerances and step limits of the growth solves (`SolverOptions`).
-    - `initial_state`: start from this `State` instead of MODEL.md §2's ICs.
+    - `initial_state`: start from this `State` instead of docs/model.md §2's ICs.
     - `t_start_s`: the time of `initial_state` (an interval bound: 0, a multiple of
       the coupling interval or 3 weeks), to continue a run from a saved state.
     - `save`: `"intervals"` (default) saves the series at every save time above;
@@ -475,7 +286,7 @@ def simulate(
     if not isinstance(params, Params):
         raise TypeError(f"params must be a jaxtissue Params, got {type(params).__name__}")
     if grid is None:
-        grid = Grid(nx=1, ny=40) if protocol.regime == "static" else Grid(nx=50, ny=40)
+        grid = Grid.default(protocol.regime)
     for name, value in (("t_end_s", t_end_s), ("coupling_interval_s", coupling_interval_s)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} = {value!r} must be a positive number of seconds")
@@ -494,7 +305,7 @@ def simulate(
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
     cell_transport = has_cell_transport(params)  # known before the floats become traced
     if options.o2_sweeps is None:
-        options = dataclasses.replace(options, o2_sweeps=_o2_sweeps(grid, params))
+        options = dataclasses.replace(options, o2_sweeps=default_o2_sweeps(grid, params))
     params = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), params)
     protocol = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), protocol)
     if progress and protocol.regime == "flex":

@@ -8,9 +8,9 @@ import pytest
 from helpers import observed_orders
 
 import jaxtissue as jt
-from jaxtissue.linsolve import thomas_factor, thomas_solve
+from jaxtissue.numerics import thomas_factor, thomas_solve
 from jaxtissue.beam import (
-    Beam, BeamGrid, Geometry, Material, _consolidation_operator, loading_cycle, waveform,
+    Beam, BeamGrid, Geometry, Material, consolidation_operator, loading_cycle, waveform,
 )
 
 P = jt.paper_parameters()
@@ -18,8 +18,8 @@ P = jt.paper_parameters()
 
 def uniform_beam(n_segments=40, ny=16, law="linear", steps=200, scale_E=1.0, scale_k=1.0):
     p = P.replace(E_s_kPa=174.0 * scale_E, k_hyd_s_cm_s=3.66e-6 * scale_k)
-    mat = Material.from_ecm(jnp.zeros((n_segments - 1, ny)), p)
-    return Beam(Geometry.from_params(p), mat, BeamGrid(n_segments=n_segments, steps_per_cycle=steps), fibre_law=law)
+    mat = Material.from_ecm(jnp.zeros((n_segments - 1, ny)), p.si())
+    return Beam(Geometry.from_params(p.si()), mat, BeamGrid(n_segments=n_segments, steps_per_cycle=steps), fibre_law=law)
 
 
 def static_elastica(beam, u_m, increments=100):
@@ -43,6 +43,7 @@ def test_elastica_midspan_deflection_matches_closed_form(u_mm, deflection_mm):
     assert float(y[30]) * 1e3 == pytest.approx(deflection_mm, rel=1e-2)
 
 
+@pytest.mark.slow  # the closed-form deflections above are the default run's
 def test_elastica_converges_at_second_order_in_s():
     """Richardson: successive differences of the mid-span deflection shrink 4x."""
     defl = []
@@ -74,14 +75,14 @@ def terzaghi_degree(T_v, terms=200):
 
 def test_suddenly_strained_layer_follows_terzaghi():
     ny = 80
-    mat = Material.from_ecm(jnp.zeros((1, ny)), P)
+    mat = Material.from_ecm(jnp.zeros((1, ny)), P.si())
     h = 1e-3
     c_v = float(mat.K[0, 0] * mat.M[0, 0])
     t_total = 0.3 * (h / 2) ** 2 / c_v  # up to T_v = 0.3
     errors = []
     for n_steps in (50, 100, 200):
         dt = t_total / n_steps
-        op = thomas_factor(*_consolidation_operator(mat, h / ny, dt))
+        op = thomas_factor(*consolidation_operator(mat, h / ny, dt))
         p0 = jnp.ones((1, ny))  # the undrained response to a sudden uniform strain
         p = jax.jit(lambda p, op=op, n=n_steps: jax.lax.fori_loop(0, n, lambda _, p: thomas_solve(op, p), p))(p0)
         U = 1 - float(jnp.mean(p))
@@ -215,7 +216,7 @@ def test_prepared_section_constants_change_nothing():
     graded section."""
     n, ny = 12, 8
     m = jnp.linspace(0.0, 0.6, (n - 1) * ny).reshape(n - 1, ny) ** 2
-    beam = Beam(Geometry.from_params(P, "bottom"), Material.from_ecm(m, P), BeamGrid(n_segments=n, steps_per_cycle=20))
+    beam = Beam(Geometry.from_params(P.si(), "bottom"), Material.from_ecm(m, P.si()), BeamGrid(n_segments=n, steps_per_cycle=20))
     prepared = beam.prepared()
     assert beam.section is None and prepared.section is not None
     key1, key2 = jax.random.split(jax.random.PRNGKey(2))

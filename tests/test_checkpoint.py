@@ -12,7 +12,7 @@ import numpy as np
 import xarray as xr
 
 import jaxtissue as jt
-from jaxtissue.checkpoint import segment_edges, simulate_checkpointed
+from jaxtissue.studies.checkpoint import segment_edges, simulate_checkpointed
 from jaxtissue.cli import main
 
 RUN = ["simulate", "--t-end", "1.2e5", "--grid", "1", "8", "--checkpoint-every", "1", "--no-progress"]

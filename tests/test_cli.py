@@ -156,14 +156,7 @@ def test_cycle_bad_input(tmp_path, capsys, args, words):
     assert not (tmp_path / "never").exists()
 
 
-def test_simulate_flex_and_reproduce_commands(tmp_path):
-    """The flex regime and the main job, end to end over two growth intervals."""
-    out = tmp_path / "flex"
-    assert main(["simulate", "--regime", "flex", "--t-end", "4e4", "--grid", "6", "10", "--period", "2", "--out", str(out)]) == 0
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["regime"] == "flex" and summary["post_force_max_N"][-1] > 0
-    rep = tmp_path / "reproduce"
-    assert main(["reproduce", "--t-end", "4e4", "--out", str(rep)]) == 0
+def _check_reproduction(rep):
     summary = json.loads((rep / "summary.json").read_text())
     for case in ("static", "flex", "flex_0.5Hz", "flex_2Hz", "flex_2.5mm", "flex_10mm"):
         assert set(summary[case]) >= {"dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "post_force_max_N"}
@@ -172,3 +165,26 @@ def test_simulate_flex_and_reproduce_commands(tmp_path):
     report = (rep / "report.md").read_text()
     assert "Engelmayr" in report
     assert "values at t = 40000 s (the run ends before 3 weeks)" in report and "3-week values" not in report
+
+
+def test_reproduction_on_small_grids(tmp_path):
+    """The main job's cases, files and report over two growth intervals, on small grids
+    (the default grids through the command: the slow test below)."""
+    p = jt.paper_parameters()
+    results = jt.reproduce.run_cases(p, t_end_s=4e4, log=lambda _: None, flex_grid=jt.Grid(3, 8), beam=jt.BeamGrid(8, 16))
+    rep = tmp_path / "reproduce"
+    rep.mkdir()
+    jt.reproduce.write(results, p, rep)
+    _check_reproduction(rep)
+
+
+@pytest.mark.slow
+def test_simulate_flex_and_reproduce_commands(tmp_path):
+    """The flex regime and the main job through the command, over two growth intervals."""
+    out = tmp_path / "flex"
+    assert main(["simulate", "--regime", "flex", "--t-end", "4e4", "--grid", "6", "10", "--period", "2", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["regime"] == "flex" and summary["post_force_max_N"][-1] > 0
+    rep = tmp_path / "reproduce"
+    assert main(["reproduce", "--t-end", "4e4", "--out", str(rep)]) == 0
+    _check_reproduction(rep)

@@ -1,4 +1,4 @@
-"""Static versus flexed culture through the staggered beam–growth loop (MODEL.md §5)."""
+"""Static versus flexed culture through the staggered beam–growth loop (docs/model.md §5)."""
 
 import jax
 import jax.numpy as jnp
@@ -67,7 +67,7 @@ def test_flex_adds_ecm_deep_in_the_construct_and_ends_evolve_alike(cases):
 
 def test_paper_rule_gives_a_symmetric_signed_flow(cases):
     """The paper's literal rule runs; its lumped velocity across the thickness is
-    symmetric about the mid-plane (MODEL.md §5's note), hence not divergence-free."""
+    symmetric about the mid-plane (docs/model.md §5's note), hence not divergence-free."""
     import sys
 
     from jaxtissue.coupling import lumped_transport
@@ -118,7 +118,7 @@ def test_gradient_through_the_staggered_run(gradients, name):
     assert ad == pytest.approx(fd, rel=1e-3), (name, ad, fd)
 
 
-@pytest.mark.slow  # `replayed_scan`'s exactness: tests/test_remat.py; this path: the float32 test below
+@pytest.mark.slow  # `replayed_scan`'s exactness and its float32 storage: tests/test_remat.py
 def test_nested_interval_checkpoints_give_the_same_gradient(gradients):
     """`SolverOptions(nest_intervals=True)` keeps ~√n interval states in the reverse
     pass: the same arithmetic, so the same gradient to round-off."""
@@ -134,6 +134,7 @@ def test_nested_interval_checkpoints_give_the_same_gradient(gradients):
         jt.SolverOptions(nest_intervals=1)
 
 
+@pytest.mark.slow  # as the float64 one above; `replayed_scan` in float32 storage: tests/test_remat.py
 def test_nested_gradient_with_float32_storage(gradients):
     """`store_float32=True` keeps the nested reverse pass's states and transports in
     float32: the forward values are unchanged, the gradient within ~1e-6 of float64's
@@ -158,7 +159,7 @@ def test_nested_gradient_with_float32_storage(gradients):
 def test_coupling_intervals_are_split_at_three_weeks():
     """The interval holding 3 weeks ends there (its state is an interval's end state,
     no dense output needed) and the next starts there; every other is T_g long."""
-    from jaxtissue.simulate import interval_bounds, save_times
+    from jaxtissue.protocol import interval_bounds, save_times
 
     bounds = interval_bounds(2.0e6, 2.0e4)
     assert len(bounds) == 102 and bounds[0] == 0.0 and bounds[-1] == 2.0e6 and jt.THREE_WEEKS_S in bounds

@@ -25,16 +25,16 @@ def test_step_limit_reports_time_reached_and_hint(tmp_path, capsys):
 
 def test_step_limit_time_reached_is_the_last_valid_save():
     r = jt.simulate(jt.paper_parameters(), t_end_s=2e5, grid=jt.Grid(1, 8), options=jt.SolverOptions(max_steps=40))
-    assert int(r.status) == 1 and bool(r.failed)
+    assert r.status == jt.RESULTS.max_steps_reached and bool(r.failed)
     k = r.ts.index(float(r.t_reached_s))
     assert np.all(np.isfinite(r.collagen_mg_per_g[: k + 1])) and not np.all(np.isfinite(r.collagen_mg_per_g))
     end = jt.simulate(jt.paper_parameters(), t_end_s=2e5, grid=jt.Grid(1, 8), options=jt.SolverOptions(max_steps=40), save="end")
-    assert int(end.status) == 1 and float(end.t_reached_s) == 0.0  # nothing saved before the end: valid only at the start
+    assert end.status == jt.RESULTS.max_steps_reached and float(end.t_reached_s) == 0.0  # nothing saved before the end: valid only at the start
 
 
 def test_beam_non_convergence_is_reported(tmp_path, capsys):
     r = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 1e5, jt.Grid(2, 8), beam=BeamGrid(8, 8))
-    assert int(r.status) == 2 and float(r.t_reached_s) == 0.0
+    assert r.status == jt.RESULTS.beam_failed and float(r.t_reached_s) == 0.0
     assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle; the run is valid up to t = 0 s")
     out = tmp_path / "c"
     assert main(["cycle", "--post-displacement", "24", "--steps", "8", "--segments", "8", "--ny", "8", "--out", str(out)]) == 1
@@ -66,13 +66,13 @@ def test_a_continued_run_starts_at_an_interval_bound():
 def test_concentrations_out_of_bounds_are_reported(tmp_path, capsys):
     # three huge fixed steps: the scheme overshoots (o < 0, c > c_max)
     r = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8), options=jt.SolverOptions(fixed_steps=3, dt0_s=1e5))
-    assert int(r.status) == 3 and bool(r.failed)
-    assert "concentrations left their physical bounds" in r.failure_message() and "finer --grid" in r.failure_message()
+    assert r.status == jt.RESULTS.out_of_bounds and bool(r.failed)
+    assert "concentrations left their physical bounds" in r.failure_message() and "finer `grid`" in r.failure_message()
     out = tmp_path / "o"
     assert main(["simulate", "--set", "k_m0=1e-3", "--rtol", "1", "--grid", "1", "8", "--no-progress", "--out", str(out)]) == 1
     assert "concentrations left their physical bounds" in one_error_line(capsys) and not out.exists()
     ok = jt.simulate(jt.paper_parameters(), t_end_s=2e6, grid=jt.Grid(1, 8))
-    assert int(ok.status) == 0 and ok.failure_message() == "" and float(ok.t_reached_s) == 2e6
+    assert ok.status == jt.RESULTS.successful and ok.failure_message() == "" and float(ok.t_reached_s) == 2e6
 
 
 def test_input_mistakes_name_the_field_and_exit_2(tmp_path, capsys):

@@ -43,6 +43,7 @@ def test_fixed_steps_are_accurate():
     np.testing.assert_allclose(np.asarray(fixed), [adaptive.collagen_mg_per_g[-1], adaptive.dna_ug_per_g[-1]], rtol=1e-5)
 
 
+@pytest.mark.slow  # vmapped forward runs: tests/test_simulate.py::test_jit_and_vmap_over_parameters
 def test_vmapped_gradients_equal_one_at_a_time():
     # adaptive steps: in a batch, a finished trajectory is stepped with h = 0 (discarded);
     # that must not turn the batch's gradients into NaN
@@ -57,6 +58,7 @@ def test_vmapped_gradients_equal_one_at_a_time():
     np.testing.assert_allclose(batched, single, rtol=1e-8)
 
 
+@pytest.mark.slow  # the flex gradients of tests/test_coupling.py run the adaptive checkpointed adjoint
 def test_adaptive_checkpointed_gradient_matches_central_differences():
     """Adaptive steps and the default checkpointed adjoint, whose reverse pass recomputes
     steps from a few stored states: at a tight tolerance the gradient must match central

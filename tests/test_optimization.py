@@ -12,10 +12,10 @@ import pytest
 
 import jaxtissue as jt
 from jaxtissue import optimization as opt
-from jaxtissue.calibration import ModelSettings
+from jaxtissue.studies.calibration import ModelSettings
 from jaxtissue.cli import main
 from jaxtissue.io import read_params_toml
-from jaxtissue.simulate import interval_bounds
+from jaxtissue.protocol import interval_bounds
 
 from helpers import TINY_MODEL
 
@@ -76,12 +76,30 @@ def tiny_design(**kw):
     return opt.Design(params=jt.paper_parameters(), t_end_s=3 * WEEK, model=TINY, stage_length_s=WEEK, **kw)
 
 
-@pytest.mark.parametrize("stages", [pytest.param(1, marks=pytest.mark.slow), 3])
-def test_lagrangian_gradient_matches_central_differences(stages):
+def _lagrangian_problem(stages):
     d = tiny_design(constraints={"surface_strain_max": 0.05, "post_force_max_N": 0.02}, stages=stages)
     theta = d.constant(0.8, 5.5) * jnp.linspace(0.9, 1.1, stages)[:, None]
-    z = d.z_from_theta(theta)
     lam = jnp.array([0.3, 0.0])  # one multiplier active, the strain constraint violated
+    return d, d.z_from_theta(theta), lam
+
+
+def test_lagrangian_directional_derivative_matches_central_differences():
+    """The cheap version of the test below: a weekly schedule's Lagrangian, its
+    derivative along one direction (one JVP) against a central difference."""
+    d, z, lam = _lagrangian_problem(3)
+    f = jax.jit(lambda z: d.lagrangian(z, lam, 0.5)[0])
+    v = jnp.linspace(-1.0, 1.0, z.size).reshape(z.shape)
+    _, slope, aux = jax.jit(lambda z: jax.jvp(lambda x: d.lagrangian(x, lam, 0.5), (z,), (v,), has_aux=True))(z)
+    assert d.violation(aux[2])[0] > 0
+    h = 1e-4
+    fd = (f(z + h * v) - f(z - h * v)) / (2 * h)
+    np.testing.assert_allclose(float(slope), float(fd), rtol=2e-4)
+
+
+@pytest.mark.slow  # every component; the directional derivative above is the default run's
+@pytest.mark.parametrize("stages", [1, 3])
+def test_lagrangian_gradient_matches_central_differences(stages):
+    d, z, lam = _lagrangian_problem(stages)
     grad, aux = jax.jit(jax.jacfwd(d.lagrangian, has_aux=True))(z, lam, 0.5)
     assert d.violation(aux[2])[0] > 0
     f = jax.jit(lambda z: d.lagrangian(z, lam, 0.5)[0])
@@ -113,7 +131,7 @@ grid_points = 5
 """ + TINY_TOML
 
 
-@pytest.mark.slow  # ~95 s; run with -m slow
+@pytest.mark.slow  # run with -m slow
 def test_optimize_command_beats_the_grid_inside_bounds_and_limits(tmp_path):
     problem = write_problem(tmp_path, PROBLEM)
     assert main(["optimize", str(problem), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
@@ -195,6 +213,7 @@ def test_shipped_problem_files_are_valid():
     assert objectives == set(opt.OBJECTIVES)
 
 
+@pytest.mark.slow  # compiles the grid search; the limits' messages: test_bad_problem_files_...
 def test_unreachable_limit_is_an_error_naming_it(tmp_path, capsys):
     body = PROBLEM.replace('objective = "total_collagen"', 'objective = "least_conditioning"').replace(
         "surface_strain_max = 0.05", "EI_min_N_m2 = 1e-5").replace("grid_points = 5", "grid_points = 2")

@@ -20,7 +20,7 @@ def test_every_field_documented_with_unit_and_default():
 def test_k_p_is_derived_from_k_c_max():
     p = jt.paper_parameters()
     k_p = float(proliferation_prefactor(p))
-    assert k_p == pytest.approx(0.01279, rel=1e-3)  # MODEL.md §2
+    assert k_p == pytest.approx(0.01279, rel=1e-3)  # docs/model.md §2
     # independent check: brute-force maximum of the Moser-Aiba factor
     o = np.linspace(1e-3, 1.0, 200001)
     g = o**5 / (0.45**5 + o**5) * np.exp(-14 * o)

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 import jaxtissue as jt
 from jaxtissue.cli import main
 from jaxtissue.params import FIELDS
-from jaxtissue.simulate import BOUNDS_TOL
+from jaxtissue.result import BOUNDS_TOL
 
 LONG = os.environ.get("JAXTISSUE_FUZZ") == "long"
 settings.register_profile("bounded", max_examples=8, deadline=None, derandomize=True,
@@ -43,7 +43,7 @@ factors = st.lists(st.floats(1 / 3, 3.0), min_size=len(VARIED), max_size=len(VAR
 @jax.jit
 def _run(p):
     r = jt.simulate(p, t_end_s=jt.THREE_WEEKS_S, grid=GRID)
-    return r.status, r.final, r.collagen_mg_per_g, r.dna_ug_per_g
+    return r.failed, r.final, r.collagen_mg_per_g, r.dna_ug_per_g
 
 
 @jax.jit
@@ -57,8 +57,8 @@ def test_valid_parameters_give_bounded_finite_fields_and_gradients(f):
     assume(f[VARIED.index("o_m")] * 0.16 < 1 and f[VARIED.index("o_c")] * 0.45 < 1)
     p = _params(f)
     p = jax.tree_util.tree_map(jnp.asarray, p)
-    status, final, collagen, dna = _run(p)
-    assert int(status) == 0
+    failed, final, collagen, dna = _run(p)
+    assert not bool(failed)
     o, c, m = (np.asarray(x) for x in (final.o, final.c, final.m))
     assert np.all(np.isfinite(o)) and np.all(np.isfinite(c)) and np.all(np.isfinite(m))
     assert o.min() >= -BOUNDS_TOL and c.min() >= -BOUNDS_TOL and m.min() >= -BOUNDS_TOL

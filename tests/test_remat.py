@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxtissue.remat import nested_checkpoint_scan, replayed_scan
+from jaxtissue.numerics import nested_checkpoint_scan, replayed_scan
 
 
 def step(carry, k):

@@ -2,18 +2,19 @@
 its structured linear algebra against dense solves."""
 
 import diffrax
-import pytest
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from helpers import observed_orders
 
 import jaxtissue as jt
-from jaxtissue.growth import GrowthModel, State
-from jaxtissue.linsolve import FivePoint, GrowthJacobian, line_sweeps, thomas_factor, thomas_solve
+from jaxtissue.growth import GrowthModel
+from jaxtissue.growth_jacobian import GrowthJacobian
+from jaxtissue.numerics import ROS34PW2, FivePoint, line_sweeps, thomas_factor, thomas_solve
 from jaxtissue.params import nondimensionalise
-from jaxtissue.simulate import _o2_sweeps
-from jaxtissue.solver import ROS34PW2
+from jaxtissue.simulate import default_o2_sweeps
+from jaxtissue.state import State
 
 GRID = jt.Grid(ny=12)
 COEFFS = nondimensionalise(jt.paper_parameters())
@@ -79,11 +80,11 @@ def test_structured_solves_equal_dense_solves():
     # the growth Jacobian's shifted solve, 1-D (Thomas) and 2-D (block Thomas), against
     # the dense (a I - J~) of the same probed blocks
     for shape in ((1, 7), (4, 5)):
-        f = lambda k: rng.random(shape) * k  # noqa: E731
+        f = lambda k: jnp.asarray(rng.random(shape) * k)  # noqa: E731
         jac = GrowthJacobian(oo_diag=-2 - f(1), oo_south=f(0.5), oo_north=f(0.5), oo_west=f(0.4) * (shape[0] > 1),
                              oo_east=f(0.4) * (shape[0] > 1), oc=-f(0.3), co=f(0.2), cc=-f(0.5), mo=f(0.1), mc=f(0.1), mm=-f(0.2))
-        a = 3.0
-        rhs = State(o=jnp.asarray(f(1)), c=jnp.asarray(f(1)), m=jnp.asarray(f(1)))
+        a = jnp.asarray(3.0)
+        rhs = State(o=f(1), c=f(1), m=f(1))
         x = jac.factor(a).solve(rhs)
         Z = np.zeros((shape[0] * shape[1],) * 2)
         oo = _dense_five_point(FivePoint(jac.oo_diag, jac.oo_south, jac.oo_north, jac.oo_west, jac.oo_east))
@@ -93,6 +94,7 @@ def test_structured_solves_equal_dense_solves():
         np.testing.assert_allclose(np.concatenate([np.asarray(v).ravel() for v in (x.o, x.c, x.m)]), dense, rtol=1e-10)
 
 
+@pytest.mark.slow  # memory of one step's reverse pass; a 2-D step's: test_a_2d_solve_probes_one_colour_at_a_time
 def test_a_steps_reverse_pass_keeps_few_residuals():
     """The reverse pass of one step stores its stage states and the factor, not the
     right-hand side's intermediates (which are recomputed): this bounds the gradient's
@@ -129,12 +131,12 @@ def test_step_sizes_are_rounded_so_round_off_cannot_move_the_time_grid():
     """`ReproducibleSteps` rounds each step down to 24 bits: a last-bit difference in
     the error estimate (forward pass vs its recomputation in the reverse pass) leaves
     the step unchanged; the step changes by less than 2^-23 relative."""
-    from jaxtissue.solver import _quantise
+    from jaxtissue.numerics import quantise
 
     dt = jnp.asarray(np.random.default_rng(1).uniform(1.0, 1e5, 1000))
-    q = _quantise(dt)
+    q = quantise(dt)
     assert bool(jnp.all(q <= dt)) and bool(jnp.all((dt - q) / dt < 2.0**-23))
-    assert float(jnp.mean(_quantise(jnp.nextafter(dt, jnp.inf)) == q)) > 0.99
+    assert float(jnp.mean(quantise(jnp.nextafter(dt, jnp.inf)) == q)) > 0.99
 
 
 def _strip_operator(nx, ny, aspect, seed=0):
@@ -172,6 +174,7 @@ def test_line_relaxation_contracts_as_line_sweeps_predicts():
     assert line_sweeps(200, 8.0) == 0  # ρ = 0.93: block elimination
 
 
+@pytest.mark.slow  # 2-D order with line relaxation; the contraction it rests on: test_line_relaxation_contracts_as_line_sweeps_predicts
 def test_order_in_time_with_line_relaxation():
     """A 2-D strip (6 × 6 cells) whose solution is uniform along x — the mode that line
     relaxation converges slowest. With the sweeps `line_sweeps` chooses (4 for a 6 mm
@@ -183,16 +186,16 @@ def test_order_in_time_with_line_relaxation():
         if sweeps is None:
             sweeps = line_sweeps(grid.nx, 1.0 * grid.nx / length_mm)
             assert sweeps == 4
-        model = GrowthModel(nondimensionalise(params), grid, cell_transport=False)
+        model = GrowthModel(nondimensionalise(params), grid, cell_transport=False, o2_sweeps=sweeps)
         y0 = jt.simulate(params, t_end_s=2.0e4, grid=grid, options=jt.SolverOptions(rtol=1e-10, atol=1e-13, o2_sweeps=0)).final
 
-        def solve(solver, controller, dt0):
+        def solve(solver, controller, dt0, model=model):
             sol = diffrax.diffeqsolve(diffrax.ODETerm(model), solver, 0.0, T, dt0, y0, stepsize_controller=controller, max_steps=100000)
             return jnp.concatenate([sol.ys.o[-1].ravel(), sol.ys.c[-1].ravel(), sol.ys.m[-1].ravel()])
 
         reference = solve(diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-12, atol=1e-14), 1.0)
         ns = [4, 8, 16, 32]
-        errors = [float(jnp.max(jnp.abs(solve(ROS34PW2(o2_sweeps=sweeps), diffrax.ConstantStepSize(), jnp.asarray(T / n)) - reference))) for n in ns]
+        errors = [float(jnp.max(jnp.abs(solve(ROS34PW2(), diffrax.ConstantStepSize(), jnp.asarray(T / n)) - reference))) for n in ns]
         orders = observed_orders([T / n for n in ns], errors)
         assert np.all((orders[1:] > lowest) & (orders[1:] < highest)), (length_mm, errors, orders)
 
@@ -224,6 +227,6 @@ def test_thomas_derivatives_in_the_bands_equal_the_dense_solve():
 def test_o2_sweeps_option_is_checked_and_chosen_from_the_strip():
     with pytest.raises(ValueError, match=r"o2_sweeps = -1 must be None or an integer >= 0"):
         jt.SolverOptions(o2_sweeps=-1)
-    assert _o2_sweeps(jt.Grid(50, 40), jt.paper_parameters()) == 6
-    assert _o2_sweeps(jt.Grid(50, 40), jt.paper_parameters().replace(length_mm=5.0)) == 0  # Δx = h/10
-    assert _o2_sweeps(jt.Grid(1, 40), jt.paper_parameters()) == 0
+    assert default_o2_sweeps(jt.Grid(50, 40), jt.paper_parameters()) == 6
+    assert default_o2_sweeps(jt.Grid(50, 40), jt.paper_parameters().replace(length_mm=5.0)) == 0  # Δx = h/10
+    assert default_o2_sweeps(jt.Grid(1, 40), jt.paper_parameters()) == 0

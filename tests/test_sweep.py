@@ -56,6 +56,7 @@ def test_grid_sweep_equals_single_runs(static_file, tmp_path):
     assert xr.load_dataset(tmp_path / "out" / "sweep.nc").equals(ds)
 
 
+@pytest.mark.slow  # sharding over devices: test_cli_sweep_uses_every_core
 def test_four_host_devices_give_the_same_values(static_file, tmp_path):
     """The batch axis sharded over 4 CPU devices (a subprocess: the device count is
     fixed when JAX starts)."""
@@ -103,6 +104,7 @@ def test_space_filling_designs(tmp_path):
     assert sobol.points.shape == (8, 2) and np.all((sobol.points[:, 1] >= 1e-7) & (sobol.points[:, 1] <= 3e-7))
 
 
+@pytest.mark.slow  # kills a subprocess; resuming in-process: test_resume_recomputes_only_missing_chunks
 def test_interrupted_sweep_resumes_to_the_same_file(static_file, tmp_path):
     """Kill the sweep after its first chunk, resume, compare with an uninterrupted run."""
     static_file.write_text(STATIC.replace("chunk = 4", "chunk = 1").replace("ny = 20", "ny = 160\nrtol = 1e-9"))
@@ -129,6 +131,20 @@ def test_interrupted_sweep_resumes_to_the_same_file(static_file, tmp_path):
     assert main(["sweep", str(static_file), "--out", str(out), "--resume"]) == 0
     resumed, ref = xr.load_dataset(out / "sweep.nc"), xr.load_dataset(fresh / "sweep.nc")
     np.testing.assert_allclose(resumed["collagen_mg_per_g"].values, ref["collagen_mg_per_g"].values, rtol=1e-7)
+
+
+def test_resume_recomputes_only_missing_chunks(static_file, tmp_path):
+    """A sweep folder missing a chunk (as a killed sweep leaves it) resumes to the same
+    file, computing only that chunk."""
+    out = tmp_path / "o"
+    assert main(["sweep", str(static_file), "--out", str(out)]) == 0
+    whole = xr.load_dataset(out / "sweep.nc")
+    (out / "chunks" / "00000004.npz").unlink()
+    (out / "sweep.nc").unlink()
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "chunks").glob("*.npz")}
+    assert main(["sweep", str(static_file), "--out", str(out), "--resume"]) == 0
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "chunks").glob("*.npz") if p.name in stamps} == stamps
+    xr.testing.assert_identical(xr.load_dataset(out / "sweep.nc"), whole)
 
 
 def test_resume_refuses_a_different_sweep(static_file, tmp_path):
@@ -178,7 +194,7 @@ def test_sensitivities_match_finite_differences():
     not polluted by step-size control."""
     p = jt.paper_parameters()
     grid, options = jt.Grid(1, 16), jt.SolverOptions(fixed_steps=300)
-    table = sw.sensitivities(p, jt.Protocol.static(), jt.THREE_WEEKS_S, grid=grid, options=options)
+    table = jt.sensitivity.sensitivities(p, jt.Protocol.static(), jt.THREE_WEEKS_S, grid=grid, options=options)
     assert "post_force_max_N" not in table  # zero in static culture
     for name in ("k_m0", "k_c_max", "o_m"):
         h = 1e-4

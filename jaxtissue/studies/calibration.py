@@ -8,10 +8,10 @@ Gaussian likelihood.
 
 Coordinates: t = log θ or θ (the transform), inside the bounds' box.
 
-* `fit`: Levenberg–Marquardt in the box (`LevenbergMarquardt`, an optimistix solver:
-  active-set steps, Nielsen's damping, exact forward-mode Jacobians with Broyden updates
-  between them) from a Latin-hypercube design of starts inside the bounds (plus the
-  base values), batched with `vmap` when `[fit] batch > 1`.
+* `fit`: Levenberg–Marquardt in the box (`numerics.LevenbergMarquardt`: active-set
+  steps, Nielsen's damping, exact forward-mode Jacobians with Broyden updates between
+  them) from a Latin-hypercube design of starts inside the bounds (plus the base
+  values), batched with `vmap` when `[fit] batch > 1`.
 * `fisher`: the Laplace approximation at the optimum from the exact Jacobian:
   covariance (JᵀJ)⁻¹ in t, standard errors, correlations.
 * `profiles`: profile likelihoods, re-optimising the other parameters at each point;
@@ -27,19 +27,19 @@ import math
 import pathlib
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .beam import BeamGrid
-from .data import DataError, Observation, read_measurements
-from .grid import Grid
-from .io import InputError, number, params_from_table, read_toml
-from .params import FIELDS, Params, suggest
-from .simulate import Protocol, SolverOptions, save_times, simulate
-from .sweep import unit_latin_hypercube
+from .. import io, plots
+from ..data import DataError, Observation, read_measurements
+from ..io import InputError, params_from_table, read_toml
+from ..numerics import LevenbergMarquardt
+from ..params import FIELDS, Params, suggest
+from ..protocol import Protocol, save_times
+from ..simulate import simulate
+from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 
 CHI2_95 = 3.841458820694124
 """95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
@@ -61,34 +61,6 @@ class FreeParameter(NamedTuple):
     def t_bounds(self):
         f = math.log if self.transform == "log" else float
         return f(self.lower), f(self.upper)
-
-
-@dataclasses.dataclass(frozen=True)
-class ModelSettings:
-    """Resolution and tolerances of the model inside the fit."""
-
-    ny: int = 16
-    flex_nx: int = 6
-    beam_segments: int = 16
-    beam_steps_per_cycle: int = 80
-    coupling_interval_s: float = 1.8144e5  # 3 weeks / 10: 3-week values within 0.05 % of T_g = 2e4 s
-    rtol: float = 1e-6
-    atol: float = 1e-9
-    nest_intervals: bool = False  # reverse-mode gradients (protocol optimisation): SolverOptions.nest_intervals
-    store_float32: bool = False  # with nest_intervals: SolverOptions.store_float32
-
-    def grid(self, regime: str) -> Grid:
-        return Grid(nx=1 if regime == "static" else self.flex_nx, ny=self.ny)
-
-    def beam(self) -> BeamGrid:
-        return BeamGrid(n_segments=self.beam_segments, steps_per_cycle=self.beam_steps_per_cycle)
-
-    def options(self) -> SolverOptions:
-        return self.solver_options("forward")
-
-    def solver_options(self, autodiff: str) -> SolverOptions:
-        return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff=autodiff, nest_intervals=self.nest_intervals,
-                             store_float32=self.store_float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -223,184 +195,25 @@ def _compiled(problem: Problem, jacobian: bool):
 
 @functools.lru_cache(maxsize=8)
 def _solver(problem: Problem, batch: int):
-    """The problem's compiled LM solve (`_lm`) for `batch` starts at a time (cached: the
+    """The problem's compiled LM solve (`lm_solve`) for `batch` starts at a time (cached: the
     fit and the profiles' points share it, and repeated fits do not recompile). One start
     at a time is not vmapped: under `vmap` the solve's Jacobian refresh would run every step."""
     s = problem.fit
-    solve = _lm(problem, max(s.max_steps, s.profile_max_steps))
+    solve = lm_solve(problem, max(s.max_steps, s.profile_max_steps))
     if batch == 1:
         return jax.jit(lambda t0, args: jax.tree_util.tree_map(lambda x: x[None], solve(t0[0], args)))
     return jax.jit(jax.vmap(solve, in_axes=(0, None)))
 
 
-def _pin(i: int, t_i: float, max_steps: int):
-    """`_lm`'s args: free parameter i pinned at t_i (i = −1: none), at most `max_steps`
+def pinned(i: int, t_i: float, max_steps: int):
+    """`lm_solve`'s args: free parameter i pinned at t_i (i = −1: none), at most `max_steps`
     steps (typed alike for every call, so that the compiled solve is reused)."""
     return (np.asarray(i, np.int64), np.asarray(t_i, np.float64), np.asarray(max_steps, np.int64))
 
 
-def _free(max_steps: int):
-    """`_lm`'s args for a fit of every free parameter."""
-    return _pin(-1, 0.0, max_steps)
-
-
-class _LMState(eqx.Module):
-    residual: jax.Array  # r at y
-    jac: jax.Array  # ∂r/∂y at y: exact (`exact`) or Broyden-updated
-    exact: jax.Array
-    absorbed: jax.Array  # jac has absorbed a rejected step since it was last exact or moved
-    stale: jax.Array  # the next step starts by recomputing the exact Jacobian at y
-    damping: jax.Array  # λ
-    nu: jax.Array
-    terminate: jax.Array
-    result: optx.RESULTS
-    steps: jax.Array
-    jacobians: jax.Array  # exact Jacobians computed (each also gives the residuals)
-
-
-class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
-    """Levenberg–Marquardt in a box lower ≤ y ≤ upper, with exact forward-mode Jacobians
-    refreshed only when needed and Broyden's rank-one update in between (an
-    `optimistix` least-squares solver: `optx.least_squares(fn, solver, y0, args)`).
-
-    * **Step.** δ minimises ‖r + J δ‖² + λ‖δ‖² with an active set held: coordinates on a
-      bound that the gradient Jᵀr pushes outwards stay there; coordinates the step would
-      carry out of the box are held on the bound they cross and the others re-solved,
-      until the step stays inside. An optimum on a bound is then reached as an interior
-      one (a map to unbounded coordinates flattens χ² at the bound, where Gauss–Newton
-      converges to it linearly).
-    * **Damping** (Nielsen's rule; Madsen, Nielsen & Tingleff 2004, §3.2): with gain
-      ratio ρ = actual / predicted reduction of χ², a step with ρ > 10⁻³ is accepted and
-      λ ← λ·max(1/3, 1 − (2ρ − 1)³); a rejected one sets λ ← νλ, ν ← 2ν.
-    * **Jacobian.** Each step evaluates the residuals once, at the trial point. After an
-      accepted step J takes Broyden's update J + (Δr − J δ) δᵀ/δᵀδ, exact along δ (one
-      evaluation instead of a forward-mode Jacobian, which costs about three for the
-      Engelmayr problem's five parameters; Transtrum & Sethna 2012). After a rejected
-      step with an updated J, the first absorbs the secant of the rejected step and
-      raises λ; a second recomputes the exact J at y, keeping λ. A trial point where
-      the model fails (non-finite residuals) only raises λ.
-    * **Stopping**, judged only on a step made with an exact J (an updated one is first
-      refreshed): the step is small in y and in r (`rtol`, `atol`, per component), or
-      (as SciPy's `ftol`) it lowered χ² by < `ftol` χ² and by at least a quarter of the
-      prediction; or a rejected step's successor, at the raised λ, moves y by less than
-      the tolerance (MINPACK's xtol rule: no progress is left at this resolution). A
-      converged solve returns the point of that exact J (its final step is below the
-      tolerance), so the state's `jac` and `residual` are exact there.
-    * With `cap_steps`, `args[-1]` caps the steps below `max_steps` (a dynamic limit, so
-      that one compiled solve serves several; reaching it ends the solve as not
-      converged). `record(chi2)` is called on the host with χ² of every evaluation.
-
-    Under `vmap` the refresh's `lax.cond` runs both branches (a Jacobian every step)."""
-
-    rtol: float
-    atol: float
-    ftol: float
-    lower: jax.Array
-    upper: jax.Array
-    cap_steps: bool = eqx.field(static=True, default=False)
-    record: object = eqx.field(static=True, default=None)
-    low_cutoff: float = 1e-3
-    norm = staticmethod(optx.max_norm)
-
-    def __init__(self, rtol, atol, ftol, lower=-jnp.inf, upper=jnp.inf, cap_steps=False, record=None):
-        self.rtol, self.atol, self.ftol = rtol, atol, ftol
-        self.lower, self.upper = jnp.asarray(lower, float), jnp.asarray(upper, float)
-        self.cap_steps, self.record = cap_steps, record
-
-    @staticmethod
-    def _linearise(fn, y, args):
-        def twice(v):
-            r = fn(v, args)[0]
-            return r, r
-
-        jac, r = jax.jacfwd(twice, has_aux=True)(y)
-        return r, jac
-
-    def _step(self, y, jac, r, damping):
-        """The damped step from y inside the box (class docstring)."""
-        n = y.shape[0]
-        lower, upper = jnp.broadcast_to(self.lower, y.shape), jnp.broadcast_to(self.upper, y.shape)
-        grad = jac.T @ r
-        damped = jnp.sqrt(damping) * jnp.eye(n, dtype=y.dtype)
-
-        def solve(held, fixed):  # δ with δ[held] = fixed[held]
-            rhs = jnp.concatenate([-(r + jac @ jnp.where(held, fixed, 0.0)), jnp.zeros(n, y.dtype)])
-            free = jnp.linalg.lstsq(jnp.concatenate([jnp.where(held, 0.0, jac), damped]), rhs)[0]
-            return jnp.where(held, fixed, free)
-
-        held = ((y <= lower) & (grad > 0)) | ((y >= upper) & (grad < 0))
-        fixed = jnp.zeros_like(y)
-        for _ in range(n):  # each pass holds at least one more coordinate, or changes nothing
-            delta = solve(held, fixed)
-            out = ~held & ((y + delta < lower) | (y + delta > upper))
-            fixed = jnp.where(out, jnp.clip(y + delta, lower, upper) - y, fixed)
-            held = held | out
-        return jnp.clip(y + solve(held, fixed), lower, upper) - y
-
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        m, false = f_struct.shape[0], jnp.array(False)
-        return _LMState(jnp.zeros(m, y.dtype), jnp.zeros((m,) + y.shape, y.dtype), false, false, jnp.array(True),
-                        jnp.array(1.0), jnp.array(2.0), false, optx.RESULTS.successful, jnp.array(0), jnp.array(0))
-
-    def step(self, fn, y, args, options, state, tags):
-        # an exact Jacobian (and residuals) at y where the previous step asked for one:
-        # the start, and refreshes (the model's Jacobian appears once in the program)
-        def exact_at_y():
-            r, jac = self._linearise(fn, y, args)
-            if self.record is not None:
-                jax.debug.callback(self.record, jnp.sum(r**2))
-            return r, jac
-
-        r, jac = jax.lax.cond(state.stale, exact_at_y, lambda: (state.residual, state.jac))
-        exact = state.exact | state.stale
-        delta = self._step(y, jac, r, state.damping)
-        y_trial = y + delta
-        r_trial, aux = fn(y_trial, args)
-        chi2, chi2_trial = jnp.sum(r**2), jnp.sum(r_trial**2)
-        if self.record is not None:
-            jax.debug.callback(self.record, chi2_trial)
-        linear = jac @ delta  # the change of r that J predicts
-        predicted = chi2 - jnp.sum((r + linear) ** 2)
-        actual = chi2 - chi2_trial
-        rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), 0.0)
-        finite = jnp.isfinite(chi2_trial)  # not where the model failed
-        accept = (rho > self.low_cutoff) & finite
-
-        raised = state.damping * state.nu
-        small = (self.norm(delta / (self.atol + self.rtol * jnp.abs(y_trial))) < 1) & (
-            self.norm((r_trial - r) / (self.atol + self.rtol * jnp.abs(r_trial))) < 1)
-        flat = (actual <= self.ftol * chi2_trial) & (actual >= 0.25 * predicted)
-        converged = accept & (small | flat)
-        stalled = ~accept & (self.norm(self._step(y, jac, r, raised) / (self.atol + self.rtol * jnp.abs(y))) < 1)
-        done = exact & (converged | stalled)
-
-        # the next y, its residuals and Jacobian: Broyden-updated along δ, or exact (kept,
-        # or recomputed at the start of the next step)
-        secant = jac + jnp.outer(r_trial - r - linear, delta) / jnp.maximum(delta @ delta, jnp.finfo(y.dtype).tiny)
-        absorb = ~accept & finite & ~exact & ~state.absorbed
-        refresh = ~done & ((converged & ~exact) | (~accept & finite & ~exact & state.absorbed))
-        damping = jnp.where(accept, state.damping * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
-                            jnp.where(refresh, state.damping, raised))
-        nu = jnp.where(accept, 2.0, jnp.where(refresh, state.nu, 2 * state.nu))
-
-        steps = state.steps + 1
-        terminate, result = done, optx.RESULTS.successful
-        if self.cap_steps:
-            capped = ~terminate & (steps >= args[-1])
-            terminate = terminate | capped
-            result = optx.RESULTS.where(capped, optx.RESULTS.max_steps_reached, result)
-        # a converged solve stays where its Jacobian is exact (the step from there is below
-        # the tolerance): its residuals and Jacobian are then those of the returned point
-        move = accept & ~done
-        new = _LMState(jnp.where(move, r_trial, r), jnp.where(move | absorb, secant, jac), ~move & exact, absorb,
-                       refresh, damping, nu, terminate, result, steps, state.jacobians + state.stale.astype(int))
-        return jnp.where(move, y_trial, y), new, aux
-
-    def terminate(self, fn, y, args, options, state, tags):
-        return state.terminate, state.result
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return y, aux, dict(residual_evaluations=state.steps, jacobian_evaluations=state.jacobians)
+def unpinned(max_steps: int):
+    """`lm_solve`'s args for a fit of every free parameter."""
+    return pinned(-1, 0.0, max_steps)
 
 
 class _LMResult(NamedTuple):
@@ -414,7 +227,7 @@ class _LMResult(NamedTuple):
     jac_exact: jax.Array
 
 
-def _lm(problem: Problem, max_steps: int, record=None):
+def lm_solve(problem: Problem, max_steps: int, record=None):
     """An LM solve `solve(t0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
     with free parameter i pinned at t_i (i = −1: none pinned), returning an `_LMResult`.
     `record(chi2)`: called with χ² of every point evaluated (the benchmark's clock)."""
@@ -446,7 +259,7 @@ def fit(problem: Problem, progress=None) -> FitResult:
     for b in range(0, len(starts), s.batch):
         t0 = jnp.asarray(starts[b : b + s.batch])
         pad = s.batch - t0.shape[0]  # keep one compiled batch shape
-        out = solve(jnp.concatenate([t0, jnp.repeat(t0[-1:], pad, axis=0)]), _free(s.max_steps))
+        out = solve(jnp.concatenate([t0, jnp.repeat(t0[-1:], pad, axis=0)]), unpinned(s.max_steps))
         runs.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[: t0.shape[0]], out))
         if progress is not None:
             progress(t0.shape[0])
@@ -524,7 +337,7 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
             xs, ys, t = [best.t[i]], [best.chi2], t_best
             for k in range(1, s.profile_points + 1):
                 x = best.t[i] + direction * span * k / s.profile_points
-                t, c, *_ = solve(t, _pin(i, x, s.profile_max_steps))
+                t, c, *_ = solve(t, pinned(i, x, s.profile_max_steps))
                 xs.append(x)
                 ys.append(float(c[0]) if np.isfinite(float(c[0])) else np.inf)
                 if progress is not None:
@@ -549,44 +362,6 @@ _TOP = {"name", "measurements", "parameters", "conditions", "model", "fit"}
 _PROTOCOL = {"regime", "period_s", "post_displacement_mm", "hold_fraction", "lumping", "pins"}
 
 
-def _table(doc, key, where, allowed=None):
-    value = doc.get(key, {})
-    if not isinstance(value, dict):
-        raise InputError(f"{where}: [{key}] must be a table")
-    if allowed is not None:
-        for k in value:
-            if k not in allowed:
-                raise InputError(f"{where}: unknown key {k!r} in [{key}]; {suggest(k, sorted(allowed))}")
-    return value
-
-
-def _settings(cls, table, where, section):
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for k, v in table.items():
-        if k not in fields:
-            raise InputError(f"{where}: unknown key {k!r} in [{section}]; {suggest(k, fields)}")
-        default = fields[k].default
-        if isinstance(default, bool):
-            if not isinstance(v, bool):
-                raise InputError(f"{where}: [{section}] {k} = {v!r} must be true or false")
-        elif isinstance(default, int):
-            ok = isinstance(v, int) and not isinstance(v, bool) and v >= (0 if k == "seed" else 1)
-            need = "an integer >= 0" if k == "seed" else "a positive integer"
-            if not ok:
-                raise InputError(f"{where}: [{section}] {k} = {v!r} must be {need}")
-        else:
-            v = number(v, f"{where}: [{section}] {k}", positive=True)
-        kwargs[k] = type(default)(v)
-    settings = cls(**kwargs)
-    if cls is ModelSettings:
-        try:  # the grids' own checks
-            settings.grid("flex"), settings.beam(), settings.options()
-        except ValueError as err:
-            raise InputError(f"{where}: [model] {err}") from None
-    return settings
-
-
 def read_problem(path, overrides: dict | None = None) -> Problem:
     """A `Problem` from a TOML file (see `calibrate/engelmayr2005.toml`); every mistake
     is an `InputError` naming the file and the key. `overrides` replace [fit] keys."""
@@ -600,12 +375,12 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
     except DataError as err:
         raise InputError(str(err)) from None
 
-    parameters = _table(doc, "parameters", where, {"free", "fixed"})
-    fixed = _table(parameters, "fixed", where)
+    parameters = table(doc, "parameters", where, {"free", "fixed"})
+    fixed = table(parameters, "fixed", where)
     base = params_from_table(fixed, f"{where} [parameters.fixed]")
 
     free = []
-    for name, spec in _table(parameters, "free", where).items():
+    for name, spec in table(parameters, "free", where).items():
         key = f"[parameters.free] {name}"
         if name not in FIELDS:
             raise InputError(f"{where}: unknown parameter {name!r} in [parameters.free]; {suggest(name, FIELDS)}")
@@ -616,10 +391,7 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
         for k in spec:
             if k not in ("bounds", "transform", "start"):
                 raise InputError(f"{where}: unknown key {k!r} in {key}; {suggest(k, ['bounds', 'transform', 'start'])}")
-        bounds = spec["bounds"]
-        if not (isinstance(bounds, list) and len(bounds) == 2 and all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)):
-            raise InputError(f"{where}: {key} bounds = {bounds!r} must be [low, high]")
-        low, high = map(float, bounds)
+        low, high = bounds(spec["bounds"], f"{where}: {key} bounds")
         info = FIELDS[name]
         if not (low < high and info.contains(low) and info.contains(high)):
             raise InputError(f"{where}: {key} bounds = [{low:g}, {high:g}] must have low < high, both in {info.range_text()} {info.unit}")
@@ -638,7 +410,7 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
         raise InputError(f"{where}: [parameters.free] names no parameter to fit")
 
     conditions = {}
-    for name, spec in _table(doc, "conditions", where).items():
+    for name, spec in table(doc, "conditions", where).items():
         if not isinstance(spec, dict):
             raise InputError(f"{where}: [conditions.{name}] must be a table")
         for k in spec:
@@ -654,12 +426,12 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
         if o.regime != "seeded" and o.regime not in conditions:
             raise InputError(f"{where}: measurement condition {o.regime!r} has no [conditions.{o.regime}]; {suggest(o.regime, conditions)}")
 
-    fit_table = dict(_table(doc, "fit", where))
+    fit_table = dict(table(doc, "fit", where))
     fit_table.update(overrides or {})
     problem = Problem(
         base=base, free=tuple(free), observations=observations, conditions=conditions,
-        model=_settings(ModelSettings, _table(doc, "model", where), where, "model"),
-        fit=_settings(FitSettings, fit_table, where, "fit"),
+        model=settings(ModelSettings, table(doc, "model", where), where, "model"),
+        fit=settings(FitSettings, fit_table, where, "fit"),
         name=str(doc.get("name", path.stem)),
     )
     return problem
@@ -795,8 +567,6 @@ def report(cal: Calibration) -> str:
 
 def write(cal: Calibration, folder) -> None:
     """summary.json, fitted.toml, report.md and the figures into `folder`."""
-    from . import io, plots
-
     folder = pathlib.Path(folder)
     io.write_json(folder / "summary.json", summary(cal))
     io.write_params_toml(cal.problem.params(jnp.asarray(cal.fit.t)), folder / "fitted.toml")

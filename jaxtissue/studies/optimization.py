@@ -34,11 +34,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .calibration import ModelSettings, _settings, _table
-from .io import InputError, number, params_from_table, read_params_toml, read_toml
-from .params import Params, suggest
-from .simulate import THREE_WEEKS_S, Protocol, interval_bounds, simulate
-from .sweep import unit_latin_hypercube
+from .. import io, plots
+from ..io import InputError, number, params_from_table, read_params_toml, read_toml
+from ..params import Params, suggest
+from ..protocol import LUMPING_RULES, THREE_WEEKS_S, Protocol, interval_bounds
+from ..simulate import simulate
+from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 
 # ---------------------------------------------------------------------------------------
 # Objectives and constraints: small functions of a `Result`
@@ -61,7 +62,7 @@ def _core_and_periphery_m(result):
 
 
 def total_collagen(result, dose):
-    """Collagen assay at the end of culture, mg/g ww (MODEL.md §3)."""
+    """Collagen assay at the end of culture, mg/g ww (docs/model.md §3)."""
     return result.collagen_mg_per_g[-1]
 
 
@@ -564,17 +565,19 @@ def _schedule_diagnosis(study: Study, s: dict) -> str:
 
 def write(study: Study, folder) -> None:
     """summary.json, params.toml, report.md and the figures into `folder`."""
-    from . import io, plots
-
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     io.write_json(folder / "summary.json", summary(study))
     io.write_params_toml(study.design.params, folder / "params.toml")
     io.atomic_write_text(folder / "report.md", report(study))
-    plots.protocol_landscape(study, folder / "landscape.png")
-    plots.optimisation_history(study, folder / "history.png")
-    if study.design.stages > 1:
-        plots.schedule(study, folder / "schedule.png")
+    d, g, o = study.design, study.grid, study.optimum
+    objective = OBJECTIVES[d.objective]
+    plots.protocol_landscape(g.periods_s, g.displacements_mm, g.objective, g.feasible, o.path, o.best, g.best, BASELINE,
+                             f"{objective.label} ({objective.unit})", folder / "landscape.png")
+    plots.optimisation_history(o.objective, o.feasible, g.best_objective if g.best is not None else None, study.baseline_objective,
+                               objective.label, objective.unit, folder / "history.png")
+    if d.stages > 1 and o.best is not None:
+        plots.schedule(o.best, d.stage_length_s, g.best, folder / "schedule.png")
 
 
 # ---------------------------------------------------------------------------------------
@@ -608,34 +611,30 @@ def read_design(path, overrides: dict | None = None) -> Design:
     else:
         raise InputError(f"{where}: parameters must be a file name (\"FILE.toml\", relative to the problem file) or a table")
 
-    protocol = _table(doc, "protocol", where, _PROTOCOL)
+    protocol = table(doc, "protocol", where, _PROTOCOL)
     stages = protocol.get("stages", 1)
     if isinstance(stages, bool) or not isinstance(stages, int) or stages < 1:
         raise InputError(f"{where}: [protocol] stages = {stages!r} must be a positive integer")
     lumping = protocol.get("lumping", "dispersive")
-    if lumping not in ("dispersive", "paper"):
-        raise InputError(f"{where}: [protocol] lumping = {lumping!r}; allowed: 'dispersive', 'paper'")
+    if lumping not in LUMPING_RULES:
+        raise InputError(f"{where}: [protocol] lumping = {lumping!r}; allowed: {', '.join(map(repr, LUMPING_RULES))}")
     hold = number(protocol.get("hold_fraction", 0.05), f"{where}: [protocol] hold_fraction")
 
-    bounds = {}
-    for name, value in _table(doc, "bounds", where, set(VARIABLES)).items():
-        if not (isinstance(value, list) and len(value) == 2):
-            raise InputError(f"{where}: [bounds] {name} = {value!r} must be [low, high]")
-        bounds[name] = tuple(number(v, f"{where}: [bounds] {name}") for v in value)
-    constraints = {n: number(v, f"{where}: [constraints] {n}", positive=True) for n, v in _table(doc, "constraints", where, set(CONSTRAINTS)).items()}
+    box = {name: bounds(value, f"{where}: [bounds] {name}") for name, value in table(doc, "bounds", where, set(VARIABLES)).items()}
+    constraints = {n: number(v, f"{where}: [constraints] {n}", positive=True) for n, v in table(doc, "constraints", where, set(CONSTRAINTS)).items()}
 
-    table = dict(_table(doc, "optimizer", where))
-    table.update(overrides or {})
-    for k, v in table.items():
+    optimizer = dict(table(doc, "optimizer", where))
+    optimizer.update(overrides or {})
+    for k, v in optimizer.items():
         if k == "margin" and isinstance(v, (int, float)) and not 0 <= v < 0.5:
             raise InputError(f"{where}: [optimizer] margin = {v!r} must be in [0, 0.5)")
     try:
         return Design(
-            objective=objective, params=params, bounds={**DEFAULT_BOUNDS, **bounds}, constraints=constraints,
+            objective=objective, params=params, bounds={**DEFAULT_BOUNDS, **box}, constraints=constraints,
             stages=stages, stage_length_s=number(protocol.get("stage_length_s", 604800.0), f"{where}: [protocol] stage_length_s", positive=True),
             t_end_s=number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s", positive=True), hold_fraction=hold, lumping=lumping,
-            model=_settings(ModelSettings, {"coupling_interval_s": DESIGN_MODEL.coupling_interval_s, **_table(doc, "model", where)}, where, "model"),
-            settings=_settings(OptimizerSettings, table, where, "optimizer"), name=str(doc.get("name", path.stem)),
+            model=settings(ModelSettings, {"coupling_interval_s": DESIGN_MODEL.coupling_interval_s, **table(doc, "model", where)}, where, "model"),
+            settings=settings(OptimizerSettings, optimizer, where, "optimizer"), name=str(doc.get("name", path.stem)),
         )
     except InputError as err:
         if str(err).startswith(where):

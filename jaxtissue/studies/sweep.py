@@ -1,4 +1,4 @@
-"""Batch sweeps over parameters and protocol fields, and local sensitivities.
+"""Batch sweeps over parameters and protocol fields.
 
 A `Sweep` (from TOML, `read_sweep`) is a design of parameter sets: a full grid
 (`linspace`, `logspace`, `values` per name) or a space-filling design (`design = "lhs"`
@@ -9,9 +9,6 @@ device of `jax.devices()` (`jax.sharding`; on several hosts after
 splits a CPU into one device per core, `use_all_cores`). Each finished chunk is
 written atomically to `DIR/chunks/`; `resume=True` skips those already there, so an
 interrupted sweep resumes and ends with the same `DIR/sweep.nc`.
-
-`sensitivities` gives d ln(output)/d ln(parameter) of the 3-week outputs for every
-parameter, one reverse-mode pass per output.
 """
 
 from __future__ import annotations
@@ -19,23 +16,20 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import pathlib
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from .beam import BeamGrid
-from .data import QUANTITIES
-from .grid import Grid
-from .io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
-from .params import FIELDS, Params, suggest
-from .simulate import THREE_WEEKS_S, Protocol, SolverOptions, save_times, simulate
-
-OUTPUTS = QUANTITIES | {"EI_N_m2": "N m^2"}  # the `Result` series a sweep keeps, and units
-PROTOCOL_FIELDS = {"period_s": "s", "post_displacement_mm": "mm", "hold_fraction": "1"}
+from ..beam import BeamGrid
+from ..grid import Grid
+from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
+from ..params import FIELDS, Params, suggest
+from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
+from ..result import OUTPUTS, SCALARS
+from ..simulate import SolverOptions, simulate
+from ._problem_files import grid_axis, space_filling
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,14 +44,14 @@ class Sweep:
     chunk: int = 64
     grid: Grid | None = None
     beam: BeamGrid = BeamGrid()
-    coupling_interval_s: float = 2.0e4
+    coupling_interval_s: float = COUPLING_INTERVAL_S
     rtol: float = 1e-5
     max_steps: int = 4096  # per growth solve; a set that needs more is marked failed
     source: str = ""  # the sweep file's text (a resumed sweep must match it)
 
     def __post_init__(self):
         if self.grid is None:
-            object.__setattr__(self, "grid", Grid(1, 40) if self.protocol.regime == "static" else Grid(50, 40))
+            object.__setattr__(self, "grid", Grid.default(self.protocol.regime))
 
     @property
     def size(self) -> int:
@@ -78,7 +72,7 @@ class Sweep:
                      beam=self.beam, options=SolverOptions(rtol=self.rtol, atol=self.rtol * 1e-3, max_steps=self.max_steps),
                      save="end" if self.outputs == "final" else "intervals")
         pick = (lambda v: v[-1]) if self.outputs == "final" else (lambda v: v)
-        out = {k: pick(getattr(r, k)) for k in OUTPUTS}
+        out = {k: pick(getattr(r, k)) for k in SCALARS}
         out["failed"] = r.failed
         return out
 
@@ -103,63 +97,6 @@ def _check_value(name, value, where):
         Protocol.flex(**{name: value})
     except ValueError as err:
         raise InputError(f"{where}: {err}") from None
-
-
-def _axis(name, spec, where):
-    """Grid values of one name: {linspace|logspace = [a, b], n} or {values = [...]}."""
-    if not isinstance(spec, dict):
-        raise InputError(f"{where}: {name} must be {{ linspace = [a, b], n = N }}, {{ logspace = [a, b], n = N }} or {{ values = [...] }}")
-    keys = set(spec) - {"n"}
-    if len(keys) != 1 or next(iter(keys)) not in ("linspace", "logspace", "values"):
-        raise InputError(f"{where}: {name} needs exactly one of linspace, logspace, values (got {sorted(spec)})")
-    kind = next(iter(keys))
-    if kind == "values":
-        values = spec["values"]
-        if not isinstance(values, list) or not values:
-            raise InputError(f"{where}: {name} values must be a non-empty list")
-        return np.array([number(v, f"{where}: {name} value") for v in values])
-    ends, n = spec[kind], spec.get("n")
-    if not (isinstance(ends, list) and len(ends) == 2):
-        raise InputError(f"{where}: {name} {kind} = {ends!r} must be [first, last]")
-    a, b = (number(v, f"{where}: {name} {kind} end") for v in ends)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise InputError(f"{where}: {name} n = {n!r} must be a positive integer")
-    if kind == "logspace":
-        if a <= 0 or b <= 0:
-            raise InputError(f"{where}: {name} logspace = [{a:g}, {b:g}] needs positive values (they are the values, not exponents)")
-        return np.geomspace(a, b, n)
-    return np.linspace(a, b, n)
-
-
-def unit_latin_hypercube(n: int, d: int, rng) -> np.ndarray:
-    """n points in [0, 1)^d, one in each of n strata along every axis."""
-    return (rng.permuted(np.tile(np.arange(n), (d, 1)), axis=1).T + rng.random((n, d))) / max(n, 1)
-
-
-def _space_filling(names, specs, design, samples, seed, where):
-    lo, hi, logs = [], [], []
-    for name in names:
-        spec = specs[name]
-        if not isinstance(spec, dict) or set(spec) - {"range", "transform"} or "range" not in spec:
-            raise InputError(f"{where}: with design = {design!r}, {name} must be {{ range = [low, high], transform = \"log\" | \"linear\" }}")
-        a, b = (number(v, f"{where}: {name} range end") for v in spec["range"])
-        transform = spec.get("transform", "linear")
-        if transform not in ("log", "linear"):
-            raise InputError(f"{where}: {name} transform = {transform!r}; allowed: 'log', 'linear'")
-        if not a < b or (transform == "log" and a <= 0):
-            raise InputError(f"{where}: {name} range = [{a:g}, {b:g}] must have low < high (and low > 0 for log)")
-        lo.append(math.log(a) if transform == "log" else a)
-        hi.append(math.log(b) if transform == "log" else b)
-        logs.append(transform == "log")
-    k = len(names)
-    if design == "lhs":
-        u = unit_latin_hypercube(samples, k, np.random.default_rng(seed))
-    else:
-        from scipy.stats import qmc
-
-        u = qmc.Sobol(k, scramble=True, seed=seed).random(samples)
-    x = np.asarray(lo) + (np.asarray(hi) - np.asarray(lo)) * u
-    return np.where(logs, np.exp(x), x)
 
 
 def read_sweep(path) -> Sweep:
@@ -203,7 +140,7 @@ def read_sweep(path) -> Sweep:
     names = tuple(specs)
     design = doc.get("design", "grid")
     if design == "grid":
-        axes = {n: _axis(n, specs[n], f"{where}: [parameters]") for n in names}
+        axes = {n: grid_axis(n, specs[n], f"{where}: [parameters]") for n in names}
         mesh = np.meshgrid(*axes.values(), indexing="ij")
         points = np.stack([m.ravel() for m in mesh], axis=1)
     elif design in ("lhs", "sobol"):
@@ -212,7 +149,7 @@ def read_sweep(path) -> Sweep:
             raise InputError(f"{where}: samples = {samples!r} must be a positive integer with design = {design!r}")
         seed = doc.get("seed", 0)
         axes = None
-        points = _space_filling(names, specs, design, samples, seed, f"{where}: [parameters]")
+        points = space_filling(names, specs, design, samples, seed, f"{where}: [parameters]")
     else:
         raise InputError(f"{where}: design = {design!r}; allowed: 'grid', 'lhs', 'sobol'")
     for name, column in zip(names, points.T):
@@ -227,11 +164,13 @@ def read_sweep(path) -> Sweep:
     try:
         grid = None
         if "nx" in model or "ny" in model:
-            grid = Grid(nx=model.get("nx", 1 if regime == "static" else 50), ny=model.get("ny", 40))
-        beam = BeamGrid(n_segments=model.get("beam_segments", 50), steps_per_cycle=model.get("beam_steps_per_cycle", 200))
+            default = Grid.default(regime)
+            grid = Grid(nx=model.get("nx", default.nx), ny=model.get("ny", default.ny))
+        beam = BeamGrid(n_segments=model.get("beam_segments", BeamGrid.n_segments),
+                        steps_per_cycle=model.get("beam_steps_per_cycle", BeamGrid.steps_per_cycle))
     except (TypeError, ValueError) as err:
         raise InputError(f"{where}: [model] {err}") from None
-    interval = number(model.get("coupling_interval_s", 2.0e4), f"{where}: [model] coupling_interval_s")
+    interval = number(model.get("coupling_interval_s", COUPLING_INTERVAL_S), f"{where}: [model] coupling_interval_s")
     rtol = number(model.get("rtol", 1e-5), f"{where}: [model] rtol")
     max_steps = model.get("max_steps", 4096)
     if interval <= 0 or not 0 < rtol < 1 or isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
@@ -300,7 +239,7 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     stamp = {"fingerprint": _fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
     if manifest.exists():
         if json.loads(manifest.read_text()) != stamp:
-            raise InputError(f"--resume {out}: the folder holds a different sweep (its file or chunk size changed)")
+            raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
     else:
         atomic_write_text(manifest, json.dumps(stamp))
     fn, n_dev = batched(sweep)
@@ -330,9 +269,9 @@ def to_dataset(sweep: Sweep, values: dict):
 
     failed = values["failed"].astype(bool)
     data = {}
-    for k, unit in OUTPUTS.items():
+    for k in SCALARS:
         v = np.where(failed.reshape((-1,) + (1,) * (values[k].ndim - 1)), np.nan, values[k])
-        data[k] = (v, unit)
+        data[k] = (v, OUTPUTS[k].unit)
     extra = ("time_s",) if sweep.outputs == "series" else ()
     if sweep.axes is not None:
         dims = tuple(sweep.names)
@@ -346,42 +285,10 @@ def to_dataset(sweep: Sweep, values: dict):
     variables = {k: (dims + extra, v.reshape(shape + v.shape[1:])) for k, (v, _) in data.items()}
     variables["failed"] = (dims, failed.reshape(shape))
     ds = xr.Dataset(variables, coords=coords)
-    for k, unit in OUTPUTS.items():
-        ds[k].attrs["units"] = unit
+    for k in SCALARS:
+        ds[k].attrs.update(units=OUTPUTS[k].unit, long_name=OUTPUTS[k].description)
     for n in sweep.names:
         ds[n].attrs["units"] = FIELDS[n].unit if n in FIELDS else PROTOCOL_FIELDS[n]
     ds.attrs.update({f"param_{k}": v for k, v in sweep.base.as_dict().items()})
     ds.attrs.update(regime=sweep.protocol.regime, t_end_s=sweep.t_end_s, outputs=sweep.outputs, failures=int(failed.sum()))
     return ds
-
-
-# ---------------------------------------------------------------------------------------
-# Local sensitivity
-# ---------------------------------------------------------------------------------------
-
-SENSITIVITY_OUTPUTS = ("dna_ug_per_g", "collagen_mg_per_g", "EI_N_m2", "post_force_max_N")
-
-
-def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEEKS_S, **simulate_kw) -> dict:
-    """{output: {parameter: d ln(output)/d ln(parameter)}} at `t_end_s` (one reverse
-    pass per output; the protocol's floats count as parameters). Outputs that are zero
-    (the post force in static culture) are left out."""
-    params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), params)
-    protocol = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), protocol)
-
-    def outputs(p, q):
-        r = simulate(p, q, t_end_s, **simulate_kw)
-        return jnp.stack([getattr(r, k)[-1] for k in SENSITIVITY_OUTPUTS])
-
-    # jacrev: one reverse pass per output (vmapped over the outputs' cotangents)
-    values, (gp, gq) = jax.jit(lambda p, q: (outputs(p, q), jax.jacrev(outputs, argnums=(0, 1))(p, q)))(params, protocol)
-    out = {}
-    for i, key in enumerate(SENSITIVITY_OUTPUTS):
-        y = float(values[i])
-        if y == 0.0:
-            continue
-        row = {n: float(getattr(gp, n)[i] * getattr(params, n) / y) for n in params.as_dict()}
-        if protocol.regime == "flex":
-            row |= {n: float(getattr(gq, n)[i] * getattr(protocol, n) / y) for n in PROTOCOL_FIELDS}
-        out[key] = row
-    return out

@@ -1,13 +1,13 @@
-"""An independent SciPy method-of-lines solution of the static growth problem (MODEL.md §2).
+"""An independent SciPy method-of-lines solution of the static growth problem (docs/model.md §2).
 
-Written from MODEL.md alone with NumPy (it shares no code with jaxtissue): the 1-D
+Written from docs/model.md alone with NumPy (it shares no code with jaxtissue): the 1-D
 transmural problem on `ny` cell-centred finite volumes, o = o_ext half a cell outside
 the first and last cells, harmonic-mean face diffusivities, integrated by
 `scipy.integrate.solve_ivp(method="BDF")` with the Jacobian's sparsity pattern
 (interleaved o, c, m: a banded matrix). It is the reference the tests compare with and
 the baseline `benchmarks/static.py` times.
 
-    python benchmarks/scipy_reference.py  # prints the 3-week values at ny = 400
+    python tests/scipy_reference.py  # prints the 3-week values at ny = 400
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ PAPER = dict(
 THREE_WEEKS_S = 21 * 86400.0
 
 
-def _g(o, p):
+def moser_aiba(o, p):
     o = np.maximum(o, 1e-30)
     return o ** p["n_moser"] / (p["o_c"] ** p["n_moser"] + o ** p["n_moser"]) * np.exp(-p["k_i"] * o)
 
@@ -35,9 +35,9 @@ def derived_k_p(p):
     lo, hi = 1e-4, 5.0
     for _ in range(3):
         o = np.linspace(lo, hi, 20001)
-        i = int(np.argmax(_g(o, p)))
+        i = int(np.argmax(moser_aiba(o, p)))
         lo, hi = o[max(i - 1, 0)], o[min(i + 1, o.size - 1)]
-    return (p["k_c_max"] + p["k_a"]) / _g(0.5 * (lo + hi), p)
+    return (p["k_c_max"] + p["k_a"]) / moser_aiba(0.5 * (lo + hi), p)
 
 
 class StaticProblem:
@@ -67,7 +67,7 @@ class StaticProblem:
         flux[-1] = D[-1] * (p["o_ext"] - o[-1]) / (dy / 2)
         op = np.maximum(o, 0.0)
         do = (flux[1:] - flux[:-1]) / dy - p["Q_o"] * c * op / (p["o_h"] + op)
-        kc = self.k_p * _g(o, p) - p["k_a"]
+        kc = self.k_p * moser_aiba(o, p) - p["k_a"]
         dc = kc * c * (p["c_max"] - c)
         dm = p["k_m0"] * np.maximum(o - p["o_m"], 0.0) * c * (1 - m)
         out = np.empty_like(u)

@@ -16,9 +16,11 @@ import pathlib
 import jax.numpy as jnp
 import numpy as np
 
-from .growth import State
-from .io import SERIES, atomic_write
-from .simulate import Result, interval_bounds, simulate
+from ..io import atomic_write
+from ..protocol import COUPLING_INTERVAL_S, interval_bounds
+from ..result import RESULTS, SERIES, Result, coordinates_cm
+from ..simulate import simulate
+from ..state import State
 
 
 def segment_edges(t_end_s: float, coupling_interval_s: float, every: int) -> np.ndarray:
@@ -46,13 +48,13 @@ def _combine(parts: list[dict], params, grid) -> Result:
     series = {k: jnp.asarray(np.concatenate([p[k] for p in cut])) for k in SERIES}
     ts = tuple(np.concatenate([p["ts"] for p in cut]).tolist())
     final = State(*(jnp.asarray(parts[-1][k]) for k in ("o", "c", "m")))
-    return Result(ts=ts, **series, final=final, x_cm=grid.x_centres(params.length_mm / 10.0),
-                  y_cm=grid.y_centres(params.thickness_mm / 10.0),
+    x_cm, y_cm = coordinates_cm(params, grid)
+    return Result(ts=ts, **series, final=final, x_cm=x_cm, y_cm=y_cm,
                   num_steps=jnp.asarray(sum(int(p["num_steps"]) for p in parts)), failed=jnp.asarray(False),
-                  status=jnp.asarray(0), t_reached_s=jnp.asarray(ts[-1]), params=params)
+                  status=RESULTS.successful, t_reached_s=jnp.asarray(ts[-1]), params=params)
 
 
-def simulate_checkpointed(params, protocol, t_end_s: float, grid, folder, every: int, *, coupling_interval_s: float = 2.0e4,
+def simulate_checkpointed(params, protocol, t_end_s: float, grid, folder, every: int, *, coupling_interval_s: float = COUPLING_INTERVAL_S,
                           progress=None, **simulate_kw) -> Result:
     """`simulate` in segments of `every` coupling intervals, each saved in `folder`;
     segments already there are loaded instead of solved. `progress(k, n)` after each

@@ -1,14 +1,14 @@
-"""A structure-exploiting linearly implicit integrator for the growth system, as a
-diffrax solver.
+"""A linearly implicit integrator for vector fields that factor their own Jacobian
+approximation, as a diffrax solver (docs/numerics.md).
 
 `ROS34PW2` is the Rosenbrock-W method of Rang & Angermann (2005): 4 stages, order 3
 with an embedded order-2 solution for step control, L-stable and stiffly accurate, and
 — being a W-method — of full order (as h → 0) for any approximation of the Jacobian.
-Each step builds the structured Jacobian `J̃` of `linsolve.GrowthJacobian` with a few
-coloured JVPs (of the model's `for_jacobian()` surrogate, if it has one), factors
-`I/(γh) − J̃` once (tridiagonal, block-tridiagonal or line relaxation; never dense) and
-uses it for all four stages. No nonlinear iterations: its cost per step is fixed and
-reverse-mode differentiation runs straight through it.
+Its vector field is an `AbstractStructuredField`, which factors `I/(γh) − J̃` once per
+step for some approximation J̃ of its Jacobian (structured: tridiagonal, line
+relaxation; never dense); all four stages solve with that factor. No nonlinear
+iterations: its cost per step is fixed and reverse-mode differentiation runs straight
+through it.
 
 diffrax supplies everything else: adaptive step control (`PIDController`, its steps
 rounded by `ReproducibleSteps` so that checkpointed gradients retrace them), dense output
@@ -18,6 +18,7 @@ must be autonomous (true of the growth model over one growth interval).
 
 from __future__ import annotations
 
+import abc
 from typing import ClassVar
 
 import diffrax
@@ -27,7 +28,22 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-from .linsolve import GrowthJacobian
+
+
+class AbstractStructuredField(eqx.Module):
+    """A vector field `(t, y, args) -> dy` (the same pytree as y) that factors
+    `a I − J̃` at y for an approximation J̃ of its Jacobian: `ROS34PW2`'s field."""
+
+    @abc.abstractmethod
+    def __call__(self, t, y, args):
+        """dy/dt at (t, y)."""
+
+    @abc.abstractmethod
+    def shifted_factor(self, t, y, args, a):
+        """`a I − J̃` at (t, y), factored: an object whose `solve(r)` returns u with
+        (a I − J̃) u = r (r and u pytrees like y). Hold J̃ constant under
+        differentiation (`jax.lax.stop_gradient`) where second derivatives are not
+        wanted."""
 
 # ROS34PW2 in the standard form (α_ij, γ_ij, b_i, b̂_i) ...
 _GAMMA = 4.3586652150845900e-01
@@ -65,24 +81,22 @@ def _combine(coefs, stacked):
     return jtu.tree_map(lambda x: jnp.tensordot(coefs, x, axes=1), stacked)
 
 
-def _vector_field(term):
-    """The callable inside diffrax's wrappers of an `ODETerm`."""
-    while hasattr(term, "term"):
-        term = term.term
-    return term.vector_field
+def _structured_field(terms) -> AbstractStructuredField:
+    """The `AbstractStructuredField` inside diffrax's wrappers of an `ODETerm`."""
+    is_field = lambda x: isinstance(x, AbstractStructuredField)  # noqa: E731
+    fields = [x for x in jtu.tree_leaves(terms, is_leaf=is_field) if is_field(x)]
+    if len(fields) != 1:
+        raise TypeError("ROS34PW2 needs an ODETerm whose vector field is an AbstractStructuredField")
+    return fields[0]
 
 
 class ROS34PW2(diffrax.AbstractAdaptiveSolver):
-    """Rosenbrock-W method with a structured Jacobian (module docstring).
-
-    Works on the growth `State`; use with `diffrax.PIDController`.
+    """Rosenbrock-W method with a structured Jacobian (module docstring): the term's
+    vector field is an `AbstractStructuredField`. Use with `diffrax.PIDController`.
     """
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar = diffrax.ThirdOrderHermitePolynomialInterpolation
-    o2_sweeps: int = eqx.field(static=True, default=0)
-    """2-D grids: sweeps of line relaxation for the O2 solve (0: block elimination;
-    `linsolve.line_sweeps`)."""
 
     def order(self, terms):
         return 3
@@ -106,19 +120,13 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         # (prevent_cse=False: the step runs inside loops, where CSE cannot merge the
         # recomputation away; the forward program stays as it was.)
         vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
-        model = _vector_field(terms)
-        surrogate = model.for_jacobian() if hasattr(model, "for_jacobian") else model
         f0 = vf(y0)
-        # The JVP only feeds J̃, which is held constant. (f0 must not be taken from this
-        # linearisation's primal output: used as stage 0's right-hand side it gave wrong
-        # checkpointed gradients. The second evaluation costs nothing measurable.)
-        _, jvp = jax.linearize(lambda y: surrogate(t0, y, args), y0)
-        shape = jtu.tree_leaves(y0)[0].shape
-        # A W-method keeps its order for any J̃, so J̃ is held constant under
-        # differentiation: no second derivatives, and the gradient differs from that
-        # of the discrete map only at the level of the local error.
-        jac = jax.lax.stop_gradient(GrowthJacobian.probe(jvp, shape))
-        factor = jac.factor(1.0 / (_GAMMA * h), self.o2_sweeps)
+        # A W-method keeps its order for any J̃; the field holds J̃ constant under
+        # differentiation, so the gradient differs from that of the discrete map only
+        # at the level of the local error. (f0 is not taken from the linearisation the
+        # field makes for J̃: used as stage 0's right-hand side that gave wrong
+        # checkpointed gradients.)
+        factor = _structured_field(terms).shifted_factor(t0, y0, args, 1.0 / (_GAMMA * h))
 
         a_t, c_t = jnp.asarray(_A_T), jnp.asarray(_C_T)
 
@@ -142,7 +150,7 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful
 
 
-def _quantise(dt, bits=24):
+def quantise(dt, bits=24):
     """dt rounded down to `bits` significant bits (relative change < 2^(1−bits))."""
     mantissa, exponent = jnp.frexp(dt)
     return jnp.ldexp(jnp.floor(jnp.ldexp(mantissa, bits)), exponent - bits)
@@ -187,4 +195,4 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
             t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
         )
         dt = jax.lax.stop_gradient(next_t1 - next_t0)
-        return keep, next_t0, next_t0 + _quantise(dt), made_jump, state, result
+        return keep, next_t0, next_t0 + quantise(dt), made_jump, state, result

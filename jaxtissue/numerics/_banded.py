@@ -1,32 +1,19 @@
-"""The structured linear algebra of the growth system's implicit steps (MODEL.md §9).
+"""Banded linear algebra on a structured grid: tridiagonal (Thomas) solves along the
+last axis, 5-point operators solved by line relaxation or block-Thomas elimination,
+and the colouring that probes a 5-point Jacobian with a few JVPs (docs/numerics.md).
 
-A linearly implicit step solves `(a I − J) u = r` with `a = 1/(γ h)`. The growth
-Jacobian couples o to its four neighbours (diffusion, advection) and the three species
-only pointwise, so:
+* `thomas_factor` / `thomas_solve`: the Thomas algorithm for many systems at once, a
+  `lax.scan` over the rows (under `vmap` each row is one vector operation over the
+  batch, 3× faster than batched LAPACK `gtsv`), differentiated as a linear solve.
+* `FivePoint.factor(sweeps)`: along y the Thomas factors; in 2-D either `sweeps` of
+  line relaxation (the x-coupling lagged, `line_sweeps` chooses how many) or, with
+  `sweeps = 0`, block-tridiagonal elimination along x.
+* `colouring`: 3 colours in 1-D, 5 in 2-D, so that no two cells of a 5-point stencil
+  share one.
 
-1. **Probe** `J` with a few coloured JVPs (3 colours in 1-D, 5 in 2-D: no two cells of
-   a 5-point stencil share one) instead of one JVP per unknown.
-2. **Eliminate** c and m pointwise (a Schur complement): what is left is a 5-point
-   operator on o alone.
-3. **Solve** it: in 1-D (`nx = 1`) the Thomas algorithm, factored once per step and
-   reused by every stage (a `lax.scan` along y: under `vmap` each row is one vector
-   operation over the batch, 3× faster than batched LAPACK `gtsv`). In 2-D either a
-   block-tridiagonal (block Thomas) elimination along x with ny × ny blocks, or — on
-   the strip's grids, whose cells are far longer than thick — a few sweeps of line
-   relaxation: Thomas solves across the thickness with the weak x-coupling lagged
-   (`line_sweeps`), about 2× cheaper per step than the block elimination.
-
-A fixed number of sweeps from zero is a fixed linear map M, used by every stage: the
-W-method then runs with J̃' = a I − M⁻¹. It keeps its order as h → 0 for any J̃, but at
-stiff step sizes the error left by the sweeps (≤ ρᵏ, `line_sweeps`) enters the local
-error, which the step control sees; `line_sweeps` keeps it ≤ 1 % (the default flex
-run takes the same 679 steps as with block elimination, its 3-week values agree to
-1e-8; `tests/test_solver.py` shows the order lost with too few sweeps).
-
-The approximation `J̃` kept here drops the O2-diffusivity's dependence on m and the
-neighbour couplings of c (cell motility/chemotaxis) — weak or, with the paper's
-D_c = χ = 0, absent. The integrator is a Rosenbrock-W method, whose order (as h → 0)
-does not depend on the Jacobian being exact (see `solver.py`).
+A fixed number of sweeps from zero is a fixed linear map M: a W-method that uses it
+runs with J̃' = a I − M⁻¹, which keeps its order as h → 0; `line_sweeps` keeps the
+error the sweeps leave ≤ 1 % so that it does not cost order at stiff step sizes.
 """
 
 from __future__ import annotations
@@ -38,8 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Field
-from .growth import State
+from .._custom_types import Field
 
 # the 5-point stencil, (di, dj) offsets in (x, y)
 _OFFSETS = {"south": (0, -1), "north": (0, 1), "west": (-1, 0), "east": (1, 0)}
@@ -51,7 +37,7 @@ def colouring(nx: int, ny: int) -> np.ndarray:
     return (j % 3) if nx == 1 else (i + 2 * j) % 5
 
 
-def _neighbour_colours(col: np.ndarray):
+def neighbour_colours(col: np.ndarray):
     """For each stencil offset: the neighbour's colour (0 where outside) and a mask."""
     nx, ny = col.shape
     out = {}
@@ -61,71 +47,6 @@ def _neighbour_colours(col: np.ndarray):
         shifted = padded[1 + di : 1 + di + nx, 1 + dj : 1 + dj + ny]
         out[name] = (np.maximum(shifted, 0), shifted >= 0)
     return out
-
-
-def _pick(responses, colours: np.ndarray):
-    """responses[colours[i, j], i, j] (a masked sum: constant masks, no gather indices
-    held as buffers)."""
-    return sum(jnp.where(colours == k, responses[k], 0.0) for k in range(responses.shape[0]))
-
-
-class GrowthJacobian(eqx.Module):
-    """The blocks of J̃ (see module docstring), every one a field on the grid."""
-
-    oo_diag: Field
-    oo_south: Field
-    oo_north: Field
-    oo_west: Field
-    oo_east: Field
-    oc: Field
-    co: Field
-    cc: Field
-    mo: Field
-    mc: Field
-    mm: Field
-
-    @classmethod
-    def probe(cls, jvp, shape) -> "GrowthJacobian":
-        """Build J̃ from `jvp(State) -> State` with 2K + 1 JVPs (K colours)."""
-        nx, ny = shape
-        col = colouring(nx, ny)
-        ncol = int(col.max()) + 1
-        masks = jnp.asarray(col[None] == np.arange(ncol)[:, None, None], dtype=float)
-        zeros = jnp.zeros_like(masks)
-        # 2-D: one colour at a time; batched, the JVPs' intermediates (fluxes on the
-        # faces, per colour) are a growth step's largest buffers, forward and reverse
-        # (default flex run: forward 2.5 → 1.8 MiB) and the batch is no faster. 1-D:
-        # batched, faster on a column of cells.
-        batched = jax.vmap(jvp) if nx == 1 else (lambda t: jax.lax.map(jvp, t))
-        r_o = batched(State(o=masks, c=zeros, m=zeros))  # columns of J for o
-        r_c = batched(State(o=zeros, c=masks, m=zeros))  # columns of J for c
-        r_m = jvp(State(o=zeros[0], c=zeros[0], m=jnp.ones(shape)))  # m is pointwise
-        nbr = _neighbour_colours(col)
-        oo = {
-            name: jnp.where(mask, _pick(r_o.o, colours), 0.0)
-            for name, (colours, mask) in nbr.items()
-        }
-        return cls(
-            oo_diag=_pick(r_o.o, col),
-            oo_south=oo["south"],
-            oo_north=oo["north"],
-            oo_west=oo["west"],
-            oo_east=oo["east"],
-            oc=_pick(r_c.o, col),
-            co=_pick(r_o.c, col),
-            cc=_pick(r_c.c, col),
-            mo=_pick(r_o.m, col),
-            mc=_pick(r_c.m, col),
-            mm=r_m.m,
-        )
-
-    def factor(self, a, sweeps: int = 0) -> "ShiftedFactor":
-        """Factor `a I − J̃` once; the result solves it for many right-hand sides
-        (2-D: `sweeps` of line relaxation, 0 = block elimination; see `FivePoint.factor`)."""
-        inv_cc = 1.0 / (a - self.cc)
-        diag = a - self.oo_diag - self.oc * self.co * inv_cc
-        o_op = FivePoint(diag, -self.oo_south, -self.oo_north, -self.oo_west, -self.oo_east)
-        return ShiftedFactor(jac=self, a=a, inv_cc=inv_cc, o_factor=o_op.factor(sweeps))
 
 
 class FivePoint(eqx.Module):
@@ -296,22 +217,6 @@ class FivePointFactor(eqx.Module):
 
         _, x = jax.lax.scan(backward, jnp.zeros_like(r[0]), (invs, op.east, z), reverse=True)
         return x
-
-
-class ShiftedFactor(eqx.Module):
-    """`a I − J̃`, factored: `solve` eliminates c and m pointwise around the O2 solve."""
-
-    jac: GrowthJacobian
-    a: jax.Array
-    inv_cc: Field
-    o_factor: FivePointFactor
-
-    def solve(self, r):
-        j = self.jac
-        o = self.o_factor.solve(r.o + j.oc * self.inv_cc * r.c)
-        c = self.inv_cc * (r.c + j.co * o)
-        m = (r.m + j.mo * o + j.mc * c) / (self.a - j.mm)
-        return State(o=o, c=c, m=m)
 
 
 def line_sweeps(nx: int, thickness_over_cell_length: float, target: float = 0.01, most: int = 8) -> int:

@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import io, plots
-from .data import observations
-from .simulate import THREE_WEEKS_S, Protocol, simulate
+from .. import io, plots
+from ..beam import BeamGrid
+from ..data import observations
+from ..protocol import T_END_S, THREE_WEEKS_S, Protocol
+from ..result import MEASURABLE
+from ..simulate import simulate
 
 CASES = {
     "static": Protocol.static(),
@@ -18,19 +21,21 @@ CASES = {
     "flex_2.5mm": Protocol.flex(post_displacement_mm=2.5),
     "flex_10mm": Protocol.flex(post_displacement_mm=10.0),
 }
-KEYS = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "post_force_max_N")
+KEYS = MEASURABLE
+"""The outputs the report compares with data."""
 
 
-def run_cases(params, t_end_s=2.0e6, paper_rule_C=70.0, progress=False, log=print):
-    """Every case of `CASES`, and flexure with the paper's rule (C = `paper_rule_C`)."""
+def run_cases(params, t_end_s=T_END_S, paper_rule_C=70.0, progress=False, log=print, flex_grid=None, beam=BeamGrid()):
+    """Every case of `CASES`, and flexure with the paper's rule (C = `paper_rule_C`);
+    flexure on `flex_grid` (default `Grid.default("flex")`) with the beam `beam`."""
     results = {}
+    flex_kw = dict(grid=flex_grid, beam=beam, progress=progress)
     for name, protocol in CASES.items():
         log(f"running {name} ...")
-        results[name] = simulate(params, protocol, t_end_s=t_end_s, progress=progress)
+        kw = dict(progress=progress) if protocol.regime == "static" else flex_kw
+        results[name] = simulate(params, protocol, t_end_s=t_end_s, **kw)
     log("running flex with the paper's lumping rule ...")
-    results["flex_paper_rule"] = simulate(
-        params.replace(lumping_C=paper_rule_C), Protocol.flex(lumping="paper"), t_end_s=t_end_s, progress=progress
-    )
+    results["flex_paper_rule"] = simulate(params.replace(lumping_C=paper_rule_C), Protocol.flex(lumping="paper"), t_end_s=t_end_s, **flex_kw)
     return results
 
 
@@ -118,7 +123,7 @@ def report(results: dict, params) -> str:
         f"{c['flex_paper_rule'] / c['static']:.3f} and DNA × {d['flex_paper_rule'] / d['static']:.3f} "
         "against static: the from-rest mean flow is small, symmetric about the mid-plane and not "
         "divergence-free, so it does not reproduce the enhanced supply of the experiments; the "
-        "dispersive rule (default) does (MODEL.md §5).",
+        "dispersive rule (default) does (docs/model.md §5).",
         "",
         "Figures: `fig5_profiles_static.png`, `fig7_profiles_flex.png`, `fig8_ecm_maps.png`, "
         "`fig9_contents.png`, `fig10_rigidity_force.png`; per-case results in `cases/*.nc`.",

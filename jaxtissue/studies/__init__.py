@@ -1,0 +1,14 @@
+"""Workflows on top of `simulate`, one module each: `calibration` (fits, Laplace
+approximation, profile likelihoods), `optimization` (protocol design), `sweep` (batch
+runs), `sensitivity` (d ln output / d ln parameter), `reproduce` (the paper's study)
+and `checkpoint` (runs in saved segments). Their problem files share one reader
+(`_problem_files`)."""
+
+from . import (
+    calibration as calibration,
+    checkpoint as checkpoint,
+    optimization as optimization,
+    reproduce as reproduce,
+    sensitivity as sensitivity,
+    sweep as sweep,
+)
