@@ -18,9 +18,9 @@ _PANELS = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa")
 
 
 def _label(name: str) -> str:
-    """An axis label from the output registry: description (unit)."""
+    """An axis label from the output registry: its label, else description (unit)."""
     out = OUTPUTS[name]
-    return f"{out.description.split(' (')[0]} ({out.unit})"
+    return out.label or f"{out.description.split(' (')[0]} ({out.unit})"
 
 
 def profile_days(ts, wanted=(0, 3, 7, 14, 21)):

@@ -31,12 +31,14 @@ class Output(NamedTuple):
     series) or `Result.final` (the fields)."""
     measurable: bool = False
     """Compared with experiment (docs/model.md §6): a measurement table may name it."""
+    label: str = ""
+    """A figure's axis label, unit included."""
 
 
 OUTPUTS: dict[str, Output] = {
-    "dna_ug_per_g": Output("ug/g", "DNA content per wet weight (A.24)", ("time_s",), obs.dna_ug_per_g, True),
-    "collagen_mg_per_g": Output("mg/g", "collagen content per wet weight (A.24)", ("time_s",), obs.collagen_mg_per_g, True),
-    "E_eff_kPa": Output("kPa", "effective flexural modulus 12 EI/(h^3 d) (A.25)", ("time_s",), obs.effective_modulus_kPa, True),
+    "dna_ug_per_g": Output("ug/g", "DNA content per wet weight (A.24)", ("time_s",), obs.dna_ug_per_g, True, "DNA (µg/g ww)"),
+    "collagen_mg_per_g": Output("mg/g", "collagen content per wet weight (A.24)", ("time_s",), obs.collagen_mg_per_g, True, "collagen (mg/g ww)"),
+    "E_eff_kPa": Output("kPa", "effective flexural modulus 12 EI/(h^3 d) (A.25)", ("time_s",), obs.effective_modulus_kPa, True, "effective modulus E (kPa)"),
     "EI_N_m2": Output("N m^2", "flexural rigidity at the mid-section (A.25)", ("time_s",), obs.flexural_rigidity_N_m2),
     "post_force_max_N": Output("N", "peak post force of a loading cycle with the ECM of that time (0: static)", ("time_s",), None, True),
     "surface_strain_max": Output("1", "peak surface fibre strain of that loading cycle (0: static)", ("time_s",)),
