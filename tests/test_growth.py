@@ -1,6 +1,5 @@
 """The growth model's spatial discretisation against independent references."""
 
-import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -12,6 +12,7 @@ import pytest
 
 import jaxtissue as jt
 from jaxtissue import optimization as opt
+from jaxtissue.studies import objectives
 from jaxtissue.studies.calibration import ModelSettings
 from jaxtissue.cli import main
 from jaxtissue.io import read_params_toml
@@ -53,22 +54,22 @@ def fake_result(m, h_cm=0.1):
 def test_core_objectives_against_hand_computed_thirds():
     # six cells: the middle third is exactly cells 2 and 3
     r = fake_result([0.1, 0.2, 0.5, 0.5, 0.2, 0.1])
-    assert np.isclose(opt.core_collagen(r, 0.0), 108.3 * 0.5)
-    assert np.isclose(opt.core_homogeneity(r, 0.0), 0.5 / 0.15)
+    assert np.isclose(objectives.core_collagen(r, 0.0), 108.3 * 0.5)
+    assert np.isclose(objectives.core_homogeneity(r, 0.0), 0.5 / 0.15)
     # four cells: cells 1 and 2 each lie 2/3 inside |y| < h/6 (cell [−h/4, 0] ∩ [−h/6, h/6])
     m = np.array([0.1, 0.3, 0.5, 0.2])
     r = fake_result(m)
     w = np.array([0.0, 2 / 3, 2 / 3, 0.0])
     core, periphery = np.sum(w * m) / np.sum(w), np.sum((1 - w) * m) / np.sum(1 - w)
-    assert np.isclose(opt.core_collagen(r, 0.0), 108.3 * core)
-    assert np.isclose(opt.core_homogeneity(r, 0.0), core / periphery)
+    assert np.isclose(objectives.core_collagen(r, 0.0), 108.3 * core)
+    assert np.isclose(objectives.core_homogeneity(r, 0.0), core / periphery)
 
 
 def test_conditioning_dose_counts_cycles_times_displacement():
     bounds = interval_bounds(3 * WEEK, 2.016e5)
-    assert np.isclose(opt.conditioning_dose(jt.Protocol.flex(0.5, 4.0), bounds), 3 * WEEK / 0.5 * 4.0 / 1e6)
+    assert np.isclose(objectives.conditioning_dose(jt.Protocol.flex(0.5, 4.0), bounds), 3 * WEEK / 0.5 * 4.0 / 1e6)
     q = jt.Protocol.schedule([1.0, 2.0, 0.5], [5.0, 2.0, 1.0])
-    assert np.isclose(opt.conditioning_dose(q, bounds), WEEK * (5.0 / 1.0 + 2.0 / 2.0 + 1.0 / 0.5) / 1e6)
+    assert np.isclose(objectives.conditioning_dose(q, bounds), WEEK * (5.0 / 1.0 + 2.0 / 2.0 + 1.0 / 0.5) / 1e6)
 
 
 def tiny_design(**kw):

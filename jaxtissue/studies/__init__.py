@@ -1,5 +1,5 @@
 """Workflows on top of `simulate`, one module each: `calibration` (fits, Laplace
-approximation, profile likelihoods), `optimization` (protocol design), `sweep` (batch
+approximation, profile likelihoods), `optimization` (protocol design, with the `objectives` and limits it may use), `sweep` (batch
 runs), `sensitivity` (d ln output / d ln parameter), `reproduce` (the paper's study)
 and `checkpoint` (runs in saved segments). Their problem files share one reader
 (`_problem_files`)."""
@@ -7,6 +7,7 @@ and `checkpoint` (runs in saved segments). Their problem files share one reader
 from . import (
     calibration as calibration,
     checkpoint as checkpoint,
+    objectives as objectives,
     optimization as optimization,
     reproduce as reproduce,
     sensitivity as sensitivity,
