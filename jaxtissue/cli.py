@@ -338,8 +338,9 @@ def cmd_cycle(args) -> int:
         raise InputError("--ny must be >= 3, --segments an even number >= 4, --steps >= 8")
     io.check_output_folder(args.out, args.overwrite)
     grid = BeamGrid(n_segments=args.segments, steps_per_cycle=args.steps)
-    material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), args.ecm), params.si())
-    beam = Beam(Geometry.from_params(params.si(), protocol.pins), material, grid)
+    si = params.si()
+    material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), args.ecm), si)
+    beam = Beam(Geometry.from_params(si, protocol.pins), material, grid)
     cycle = loading_cycle(beam, protocol.period_s, protocol.post_displacement_mm * 1e-3, protocol.hold_fraction, keep_fields=True)
     if bool(cycle.failed):
         from .result import RESULTS

@@ -26,10 +26,9 @@ from .params import CM_PER_M, Params
 from .state import State, Transport
 
 
-def beam_nodes_x_m(p: Params, beam_grid: BeamGrid):
-    """Reference x (m, −L/2..L/2) of the beam's nodes."""
-    L = p.si().length_m
-    return beam_grid.node_s(L) - 0.5 * L
+def beam_nodes_x_m(length_m, beam_grid: BeamGrid):
+    """Reference x (m, −L/2..L/2) of the beam's nodes on a strip of `length_m`."""
+    return beam_grid.node_s(length_m) - 0.5 * length_m
 
 
 def _to_x(values_nodes, x_from, x_to):
@@ -40,7 +39,7 @@ def _to_x(values_nodes, x_from, x_to):
 def beam_from_ecm(y: State, p: Params, grid: Grid, beam_grid: BeamGrid, pins: str, fibre_law: str) -> Beam:
     """The beam whose sections carry the current ECM (growth cells → interior nodes)."""
     si = p.si()
-    x_nodes = beam_nodes_x_m(p, beam_grid)[1:-1]
+    x_nodes = beam_nodes_x_m(si.length_m, beam_grid)[1:-1]
     if grid.nx == 1:  # uniform along the strip
         m_sections = jnp.broadcast_to(y.m, (x_nodes.shape[0], grid.ny))
     else:
@@ -51,7 +50,7 @@ def beam_from_ecm(y: State, p: Params, grid: Grid, beam_grid: BeamGrid, pins: st
 def lumped_transport(cycle, p: Params, grid: Grid, beam_grid: BeamGrid, rule: str, pins: str) -> Transport:
     """The cycle's lumped transport on the growth grid (module docstring), cm/s, cm²/s."""
     si = p.si()
-    x_nodes = beam_nodes_x_m(p, beam_grid)
+    x_nodes = beam_nodes_x_m(si.length_m, beam_grid)
     x_cells = grid.x_centres(si.length_m)
 
     def to_growth(sections):  # (n_segments − 1, ny) in m/s → (nx, ny) in cm/s
