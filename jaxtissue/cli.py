@@ -4,7 +4,8 @@
     jaxtissue simulate --regime static|flex … one culture, to a folder of files and figures
     jaxtissue cycle …                        one loading cycle of the poroelastic beam
     jaxtissue reproduce --out DIR            the paper's study: six cases, figures, report
-    jaxtissue calibrate PROBLEM.toml --out DIR   fit parameters to measurements
+    jaxtissue calibrate PROBLEM.toml --out DIR   fit parameters to measurements (--posterior: and sample)
+    jaxtissue predict --posterior DIR --out DIR  posterior predictive bands of a protocol
     jaxtissue sweep SWEEP.toml --out DIR     a batch of simulations
     jaxtissue sensitivity --out DIR          d ln(output)/d ln(parameter)
     jaxtissue optimize PROBLEM.toml --out DIR    the best conditioning protocol
@@ -39,6 +40,8 @@ FLAGS = {
     "out": "--out",
     "overwrite": "--overwrite",
     "resume": "--resume",
+    "posterior": "--posterior",
+    "draws": "--draws",
 }
 """The library's argument names and the flags that set them: messages from the library
 name arguments in backticks, and the command line shows the flag instead."""
@@ -120,9 +123,25 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("problem", metavar="PROBLEM.toml", help="problem file, e.g. calibrate/engelmayr2005.toml")
     k.add_argument("--starts", type=_grid_size, default=None, metavar="N", help="number of starts (default: the problem's [fit] starts)")
     k.add_argument("--no-profiles", action="store_true", help="skip the profile likelihoods (identifiability then from standard errors)")
+    k.add_argument("--posterior", action="store_true", help="then sample the posterior with NUTS: posterior.nc, pairs.png, traces.png")
+    k.add_argument("--chains", type=_grid_size, default=4, metavar="N", help="with --posterior: chains, batched (default 4)")
+    k.add_argument("--warmup", type=_grid_size, default=200, metavar="N", help="with --posterior: warmup draws per chain (default 200)")
+    k.add_argument("--samples", type=_grid_size, default=250, metavar="N", help="with --posterior: kept draws per chain (default 250)")
+    k.add_argument("--seed", type=int, default=0, metavar="S", help="with --posterior: random seed (default 0)")
     _output_arguments(k)
     k.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     k.set_defaults(func=cmd_calibrate)
+
+    d = sub.add_parser("predict", help="posterior predictive bands of a protocol from a calibrated posterior")
+    d.add_argument("--posterior", required=True, metavar="DIR", help="a `jaxtissue calibrate --posterior` output folder")
+    d.add_argument("--regime", choices=["static", "flex"], default="flex", help="culture regime (default: flex)")
+    _flex_arguments(d)
+    d.add_argument("--t-end", type=_positive_float, default=THREE_WEEKS_S, metavar="S", help="end of culture in s (default 3 weeks)")
+    d.add_argument("--draws", type=_grid_size, default=100, metavar="N", help="posterior draws to simulate (default 100)")
+    d.add_argument("--seed", type=int, default=0, metavar="S", help="which draws (default 0)")
+    _output_arguments(d)
+    d.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
+    d.set_defaults(func=cmd_predict)
 
     w = sub.add_parser("sweep", help="a batch of simulations over a grid or design of parameter sets")
     w.add_argument("sweep", metavar="SWEEP.toml", help="sweep definition (see README)")
@@ -395,10 +414,64 @@ def cmd_calibrate(args) -> int:
     if not math.isfinite(cal.fit.chi2):
         print("jaxtissue: error: every start failed (non-finite residuals); try narrower bounds or more starts. Nothing was written.", file=sys.stderr)
         return 1
+    sampled = None
+    if args.posterior:
+        from .studies import posterior
+
+        settings = posterior.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples, seed=args.seed)
+        sampled = posterior.run(cal, settings, progress=progress)
     with io.output_folder(args.out, args.overwrite) as tmp:
         calibration.write(cal, tmp)
+        if sampled is not None:
+            posterior.write(cal, sampled, tmp)
     print(f"chi2 = {cal.fit.chi2:.4g}; " + ", ".join(f"{n} = {v:.4g}" for n, v in zip(problem.names, cal.fit.values)))
-    print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png)")
+    if sampled is not None:
+        s = sampled.summary
+        print(f"posterior: {s['draws']} draws, {s['divergences']} divergent; "
+              + ", ".join(f"{n} {v['q50']:.3g} [{v['q05']:.3g}, {v['q95']:.3g}] (R-hat {v['r_hat']:.3f}, ESS {v['ess_bulk']:.0f})"
+                          for n, v in s["posterior"].items()))
+    print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
+          + (", posterior.nc, pairs.png, traces.png)" if sampled is not None else ")"))
+    return 0
+
+
+def cmd_predict(args) -> int:
+    from tqdm.auto import tqdm
+
+    from . import io, plots
+    from .protocol import Protocol
+    from .result import SCALARS
+    from .studies import posterior
+
+    saved = posterior.read_saved(args.posterior)
+    protocol = Protocol.static() if args.regime == "static" else _flex_protocol(args)
+    io.check_output_folder(args.out, args.overwrite)
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    with tqdm(total=min(args.draws, saved.values[..., 0].size), desc="predict", unit="draw", disable=not progress) as bar:
+        ds = posterior.predict(saved, protocol, args.t_end, draws=args.draws, seed=args.seed, progress=bar.update)
+    shown = [k for k in SCALARS if k != "surface_strain_max" and (args.regime == "flex" or k != "post_force_max_N")]
+    bands = {k: tuple(ds[f"{k}_q{q:02d}"].values for q in (5, 50, 95)) for k in shown}
+    condition = args.regime
+    data = {}
+    for quantity, cond, t, mean, sd in saved.observations:
+        if cond in (condition, "seeded"):
+            data.setdefault(quantity, []).append((t, mean, sd, cond))
+    end = {k: {"q05": float(ds[f"{k}_q05"].values[-1]), "q50": float(ds[f"{k}_q50"].values[-1]), "q95": float(ds[f"{k}_q95"].values[-1])}
+           for k in shown}
+    summary = {"posterior": str(args.posterior), "regime": args.regime, "t_end_s": args.t_end, "draws": int(ds.sizes["draw"]),
+               "failed_draws": int(ds["failed"].values.sum()), "at_t_end": end,
+               "model": dict(zip(("ny", "flex_nx", "beam_segments", "beam_steps_per_cycle", "coupling_interval_s"),
+                                 (saved.model.ny, saved.model.flex_nx, saved.model.beam_segments, saved.model.beam_steps_per_cycle,
+                                  saved.model.coupling_interval_s)))}
+    title = f"{args.regime}" + (f", T = {args.period:g} s, {args.post_displacement:g} mm" if args.regime == "flex" else "") + \
+        f": posterior predictive of {summary['draws']} draws (data: condition '{condition}')"
+    with io.output_folder(args.out, args.overwrite) as tmp:
+        io.write_netcdf(ds, tmp / "predict.nc")
+        io.write_json(tmp / "summary.json", summary)
+        plots.predictive_bands(ds["time_s"].values, bands, data, title, tmp / "bands.png")
+    for k, v in end.items():
+        print(f"{k} at {args.t_end:g} s: median {v['q50']:.4g}, 90 % band [{v['q05']:.4g}, {v['q95']:.4g}]")
+    print(f"wrote {args.out}/ (predict.nc, summary.json, bands.png)")
     return 0
 
 

@@ -171,8 +171,9 @@ def waterfall(chi2, path):
     plt.close(fig)
 
 
-def fit_against_data(observations, model, path):
-    """Data (mean ± SD) and the fitted model, one panel per observable."""
+def fit_against_data(observations, model, path, band=None):
+    """Data (mean ± SD) and the fitted model, one panel per observable; `band`: a
+    (2, observations) posterior predictive interval drawn around each model value."""
     names = list(dict.fromkeys(o.quantity for o in observations))
     fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.4), squeeze=False)
     for ax, name in zip(axes[0], names):
@@ -181,6 +182,9 @@ def fit_against_data(observations, model, path):
         x = np.arange(len(rows))
         ax.errorbar(x, [o.mean for _, o in rows], yerr=[o.sd for _, o in rows], fmt="o", color="k", capsize=3, label="data")
         ax.plot(x, [model[k] for k, _ in rows], "s", color="C3", label="model")
+        if band is not None:
+            ax.vlines(x + 0.12, [band[0][k] for k, _ in rows], [band[1][k] for k, _ in rows], color="C3", lw=4, alpha=0.35,
+                      label="90 % predictive")
         ax.set_xticks(x, labels)
         ax.set_title(name)
     axes[0][0].legend()
@@ -303,6 +307,89 @@ def schedule(best, stage_length_s, constant, path):
             ax.axhline(constant[key], color="orange", ls="--", label="best constant (grid)")
         ax.set(xlabel="stage start (weeks)", ylabel=label)
     axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def posterior_pairs(names, draws, diverging, path, reference=None):
+    """Pair plot of posterior draws (chains, draws, k): histograms on the diagonal,
+    scatter below it, divergent transitions in red, `reference` values (e.g. the fit's
+    optimum) as lines."""
+    x = np.asarray(draws).reshape(-1, len(names))
+    bad = np.asarray(diverging).ravel()
+    k = len(names)
+    fig, axes = plt.subplots(k, k, figsize=(1.9 * k + 1, 1.9 * k + 1), squeeze=False)
+    for i in range(k):
+        for j in range(k):
+            ax = axes[i][j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                ax.hist(x[:, i], bins=30, color="C0", alpha=0.8)
+                ax.set_yticks([])
+            else:
+                ax.plot(x[~bad, j], x[~bad, i], ".", ms=1.5, alpha=0.4, color="C0")
+                ax.plot(x[bad, j], x[bad, i], ".", ms=4, color="C3")
+                if reference is not None:
+                    ax.axhline(reference[i], color="k", lw=0.6)
+            if reference is not None:
+                ax.axvline(reference[j], color="k", lw=0.6)
+            if i == k - 1:
+                ax.set_xlabel(names[j], fontsize=8)
+            else:
+                ax.set_xticklabels([])
+            if j == 0 and i > 0:
+                ax.set_ylabel(names[i], fontsize=8)
+            elif j > 0:
+                ax.set_yticklabels([])
+            ax.tick_params(labelsize=6)
+    fig.suptitle(f"posterior draws ({len(x)}; divergent in red: {int(bad.sum())}); lines: best fit", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def posterior_traces(names, draws, path):
+    """Trace of each free parameter, one line per chain, with its histogram per chain."""
+    d = np.asarray(draws)
+    k = len(names)
+    fig, axes = plt.subplots(k, 2, figsize=(9, 1.6 * k + 0.6), squeeze=False, gridspec_kw={"width_ratios": [3, 1]})
+    for i, name in enumerate(names):
+        for c in range(d.shape[0]):
+            axes[i][0].plot(d[c, :, i], lw=0.5, color=f"C{c % 10}")
+            axes[i][1].hist(d[c, :, i], bins=25, histtype="step", color=f"C{c % 10}", orientation="horizontal")
+        axes[i][0].set_ylabel(name, fontsize=8)
+        axes[i][1].set_yticklabels([])
+        for ax in axes[i]:
+            ax.tick_params(labelsize=6)
+    axes[-1][0].set_xlabel("draw")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def predictive_bands(times_s, bands: dict, data: dict, title, path):
+    """Posterior predictive median and 90 % band of each output over time (days), with
+    the data (mean ± SD) it was conditioned on. `bands`: name -> (q05, q50, q95) arrays;
+    `data`: name -> [(time_s, mean, sd, condition), ...]."""
+    names = list(bands)
+    cols = min(3, len(names))
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.1 * rows), squeeze=False)
+    days = np.asarray(times_s) / DAY_S
+    for ax, name in zip(axes.flat, names):
+        lo, mid, hi = bands[name]
+        ax.fill_between(days, lo, hi, color="C0", alpha=0.3, label="90 % band")
+        ax.plot(days, mid, color="C0", label="median")
+        for k, (t, mean, sd, condition) in enumerate(data.get(name, [])):
+            ax.errorbar([t / DAY_S], [mean], yerr=[sd], fmt="o", color="k", capsize=3, label="data" if k == 0 else None)
+        ax.set(xlabel="time (days)", ylabel=_label(name))
+    for ax in axes.flat[len(names):]:
+        ax.axis("off")
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

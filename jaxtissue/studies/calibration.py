@@ -40,6 +40,7 @@ from ..params import FIELDS, Params, suggest
 from ..protocol import Protocol, save_times
 from ..simulate import simulate
 from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
+from .priors import Prior, default_prior, read_prior
 
 CHI2_95 = 3.841458820694124
 """95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
@@ -50,6 +51,11 @@ class FreeParameter(NamedTuple):
     lower: float
     upper: float
     transform: str  # "log" or "linear"
+    prior: Prior | None = None  # None: flat in the fit coordinate (`default_prior`)
+
+    @property
+    def prior_density(self) -> Prior:
+        return default_prior(self.transform) if self.prior is None else self.prior
 
     def to_t(self, value):
         return jnp.log(value) if self.transform == "log" else jnp.asarray(value, float)
@@ -389,8 +395,8 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
         if not isinstance(spec, dict) or "bounds" not in spec:
             raise InputError(f"{where}: {key} must be {{ bounds = [low, high], transform = \"log\" | \"linear\" }}")
         for k in spec:
-            if k not in ("bounds", "transform", "start"):
-                raise InputError(f"{where}: unknown key {k!r} in {key}; {suggest(k, ['bounds', 'transform', 'start'])}")
+            if k not in ("bounds", "transform", "start", "prior"):
+                raise InputError(f"{where}: unknown key {k!r} in {key}; {suggest(k, ['bounds', 'transform', 'start', 'prior'])}")
         low, high = bounds(spec["bounds"], f"{where}: {key} bounds")
         info = FIELDS[name]
         if not (low < high and info.contains(low) and info.contains(high)):
@@ -405,7 +411,8 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
             if isinstance(start, bool) or not isinstance(start, (int, float)) or not low <= start <= high:
                 raise InputError(f"{where}: {key} start = {start!r} must be a number in [{low:g}, {high:g}]")
             base = base.replace(**{name: float(start)})
-        free.append(FreeParameter(name, low, high, transform))
+        prior = read_prior(spec["prior"], low, high, f"{where}: {key}") if "prior" in spec else None
+        free.append(FreeParameter(name, low, high, transform, prior))
     if not free:
         raise InputError(f"{where}: [parameters.free] names no parameter to fit")
 

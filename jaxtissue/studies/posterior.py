@@ -1,0 +1,546 @@
+"""Bayesian calibration: the posterior of a calibration problem's free parameters,
+sampled with NUTS (blackjax), diagnosed with ArviZ (docs/model.md §9).
+
+The posterior of the free parameters θ given data y is
+
+    p(θ | y) ∝ exp(−χ²(θ)/2) · Π_i p_i(θ_i)        inside the bounds,
+
+with χ² the SD-weighted sum of squares of `calibration.Problem.residuals` and p_i the
+priors (`priors.Prior`). NUTS samples it in unbounded coordinates u: the fit coordinate
+t (ln θ or θ) is t = lo + (hi − lo)·σ(u), σ the logistic function, and the density in u
+carries the Jacobian |dθ/du|. The gradient of ln p comes from forward-mode
+differentiation of the residuals (a handful of tangents through the coupled solve),
+wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
+
+Chains run batched under `vmap`, each with its own warmup (Stan's window adaptation of
+the step size and a dense mass matrix, which follows the k_c,max–k_a ridge of the
+Engelmayr problem). R-hat, effective sample sizes and quantiles are ArviZ's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import pathlib
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._problem_files import ModelSettings
+from .calibration import Problem
+
+
+def _arviz():
+    """ArviZ, imported without its notice about a future major version."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        import arviz
+    return arviz
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplerSettings:
+    """NUTS settings: chains (batched with vmap), warmup and kept draws per chain."""
+
+    chains: int = 4
+    warmup: int = 200
+    samples: int = 250
+    seed: int = 0
+    target_acceptance: float = 0.8
+    max_tree_depth: int = 6  # at most 2⁶ − 1 leapfrog steps a draw
+    jitter: float = 1.0  # spread of the chains' starts, in Laplace standard deviations
+
+
+# ---------------------------------------------------------------------------------------
+# Coordinates and density
+# ---------------------------------------------------------------------------------------
+
+
+def _t_bounds(free):
+    lo, hi = zip(*(f.t_bounds for f in free))
+    return jnp.asarray(lo), jnp.asarray(hi)
+
+
+def t_from_u(free, u):
+    """The fit coordinate t (ln θ or θ) of u for the free parameters `free`."""
+    lo, hi = _t_bounds(free)
+    return lo + (hi - lo) * jax.nn.sigmoid(u)
+
+
+def u_from_t(free, t, margin: float = 1e-3):
+    """The unbounded coordinate of t, t first moved `margin` of the range inside the
+    bounds (an optimum on a bound has no finite u)."""
+    lo, hi = _t_bounds(free)
+    x = jnp.clip((jnp.asarray(t) - lo) / (hi - lo), margin, 1 - margin)
+    return jnp.log(x) - jnp.log1p(-x)
+
+
+def log_prior_u(free, u):
+    """Σ ln p_i(θ_i) + ln|dθ_i/du_i|: the priors of `free` as a density in u."""
+    lo, hi = _t_bounds(free)
+    t = t_from_u(free, u)
+    total = jnp.sum(jnp.log(hi - lo) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u))  # dt/du
+    for i, f in enumerate(free):
+        value = f.from_t(t[i])
+        total += f.prior_density.log_density(value) + (t[i] if f.transform == "log" else 0.0)  # dθ/dt = θ
+    return total
+
+
+def log_likelihood_t(problem: Problem):
+    """−χ²(t)/2 with its gradient by forward mode (custom VJP): −∞ with a zero gradient
+    where the model fails."""
+
+    def residuals_twice(t):
+        r = problem.residuals(t)
+        return r, r
+
+    @jax.custom_vjp
+    def log_likelihood(t):
+        return _value_and_grad(t)[0]
+
+    def _value_and_grad(t):
+        J, r = jax.jacfwd(residuals_twice, has_aux=True)(t)
+        ok = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(J))
+        r0 = jnp.where(ok, r, 0.0)
+        value = jnp.where(ok, -0.5 * jnp.sum(r0**2), -jnp.inf)
+        grad = jnp.where(ok, -(jnp.where(ok, J, 0.0).T @ r0), 0.0)
+        return value, grad
+
+    def fwd(t):
+        value, grad = _value_and_grad(t)
+        return value, grad
+
+    def bwd(grad, cotangent):
+        return (cotangent * grad,)
+
+    log_likelihood.defvjp(fwd, bwd)
+    return log_likelihood
+
+
+def log_density_fn(problem: Problem):
+    """ln p(u | y) up to a constant, differentiable in u."""
+    log_likelihood = log_likelihood_t(problem)
+
+    def log_density(u):
+        return log_likelihood(t_from_u(problem.free, u)) + log_prior_u(problem.free, u)
+
+    return log_density
+
+
+# ---------------------------------------------------------------------------------------
+# Sampling
+# ---------------------------------------------------------------------------------------
+
+
+class Draws(NamedTuple):
+    u: np.ndarray  # (chains, draws, k)
+    t: np.ndarray  # fit coordinate
+    values: np.ndarray  # natural units
+    log_density: np.ndarray  # (chains, draws)
+    diverging: np.ndarray
+    acceptance_rate: np.ndarray
+    leapfrog_steps: np.ndarray
+    step_size: np.ndarray  # (chains,)
+    inverse_mass_matrix: np.ndarray  # (chains, k, k)
+    seconds: dict  # "warmup", "sampling"
+
+
+def laplace_inverse_mass(problem: Problem, t_best, jacobian) -> np.ndarray:
+    """The warmup's first inverse mass matrix: the Laplace covariance in u at the optimum,
+    (Dᵀ JᵀJ D + I/σ²)⁻¹ with D = dt/du, J = ∂r/∂t and σ² = π²/3 the variance of a flat
+    prior in u (which keeps directions the data leave free at the prior's width)."""
+    lo, hi = (np.asarray(b) for b in _t_bounds(problem.free))
+    s = 1.0 / (1.0 + np.exp(-np.asarray(u_from_t(problem.free, t_best))))
+    D = np.diag((hi - lo) * s * (1 - s))
+    J = np.asarray(jacobian)
+    precision = D @ J.T @ J @ D + np.eye(len(D)) * 3.0 / np.pi**2
+    return np.linalg.inv(precision)
+
+
+def starting_points(problem: Problem, t_best, covariance, settings: SamplerSettings) -> np.ndarray:
+    """(chains, k) starts in u, drawn from N(u_best, jitter² · covariance): dispersed
+    over the Laplace approximation, so that R-hat can see chains that disagree."""
+    u0 = np.asarray(u_from_t(problem.free, t_best))
+    noise = np.random.default_rng(settings.seed).normal(size=(settings.chains, u0.size))
+    return u0 + settings.jitter * noise @ np.linalg.cholesky(covariance).T
+
+
+def nuts_programs(log_density, settings: SamplerSettings):
+    """Jitted (adapt, draws) for `log_density(u, args)`, batched over chains.
+
+    `adapt(keys, u0, imm0, args)`: window adaptation (dense mass matrix seeded with imm0)
+    of each chain from its start u0, returning its state, step size and inverse mass
+    matrix; `draws(keys, state, step_size, imm, args)`: one NUTS draw per key (keys of
+    shape (chains, n, 2)), returning the final state and (position, log density,
+    divergent, acceptance rate, leapfrog steps) of each draw."""
+    import blackjax
+
+    def adapt(key, u0, imm0, args):
+        warmup = blackjax.window_adaptation(blackjax.nuts, lambda u: log_density(u, args), is_mass_matrix_diagonal=False,
+                                            initial_inverse_mass_matrix=imm0, imm_shrinkage_to_previous=10.0,
+                                            target_acceptance_rate=settings.target_acceptance,
+                                            max_num_doublings=settings.max_tree_depth)
+        (state, parameters), _ = warmup.run(key, u0, num_steps=settings.warmup)
+        return state, parameters["step_size"], parameters["inverse_mass_matrix"]
+
+    def draws(keys, state, step_size, inverse_mass_matrix, args):
+        kernel = blackjax.nuts(lambda u: log_density(u, args), step_size, inverse_mass_matrix,
+                               max_num_doublings=settings.max_tree_depth)
+
+        def one(state, key):
+            state, info = kernel.step(key, state)
+            return state, (state.position, state.logdensity, info.is_divergent, info.acceptance_rate,
+                           info.num_integration_steps)
+
+        return jax.lax.scan(one, state, keys)
+
+    return (jax.jit(jax.vmap(adapt, in_axes=(0, 0, None, None))),
+            jax.jit(jax.vmap(draws, in_axes=(0, 0, 0, 0, None))))
+
+
+def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50):
+    """Warmup then `settings.samples` draws per chain with `nuts_programs`' pair, the
+    draws in chunks (one compiled chunk length) with `progress(n)` after each.
+    Returns (position, log density, divergent, acceptance, leapfrog steps) arrays of
+    shape (chains, samples, ...), the step sizes, inverse mass matrices and seconds."""
+    adapt, draws = programs
+    chunk = min(chunk, settings.samples)
+    key_warmup, key_draws = jax.random.split(jax.random.PRNGKey(settings.seed))
+    chains = np.shape(u0)[0]
+    seconds = {}
+    start = time.perf_counter()
+    state, step_size, imm = jax.block_until_ready(adapt(jax.random.split(key_warmup, chains), jnp.asarray(u0), jnp.asarray(imm0), args))
+    seconds["warmup"] = time.perf_counter() - start
+    if progress is not None:
+        progress(settings.warmup)
+    start = time.perf_counter()
+    keys = jax.random.split(key_draws, chains * settings.samples).reshape(chains, settings.samples, -1)
+    parts = []
+    for b in range(0, settings.samples, chunk):
+        k = keys[:, b : b + chunk]
+        n = k.shape[1]
+        if n < chunk:
+            k = jnp.concatenate([k, keys[:, : chunk - n]], axis=1)
+        state, out = draws(k, state, step_size, imm, args)
+        parts.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[:, :n], out))
+        if progress is not None:
+            progress(n)
+    seconds["sampling"] = time.perf_counter() - start
+    arrays = tuple(np.concatenate(a, axis=1) for a in zip(*parts))
+    return arrays, np.asarray(step_size), np.asarray(imm), seconds
+
+
+@functools.lru_cache(maxsize=4)
+def _programs(problem: Problem, settings: SamplerSettings):
+    log_density = log_density_fn(problem)
+    return nuts_programs(lambda u, args: log_density(u), settings)
+
+
+def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
+    """NUTS draws of the posterior from starts around `t_best`, the fit's optimum, whose
+    Jacobian ∂r/∂t seeds the mass matrix (`laplace_inverse_mass`). `progress(n)` is
+    called after warmup (n = warmup) and after each chunk of draws."""
+    imm0 = laplace_inverse_mass(problem, t_best, jacobian)
+    u0 = starting_points(problem, t_best, imm0, settings)
+    (u, lp, div, acc, steps), step_size, imm, seconds = run_chains(_programs(problem, settings), u0, imm0, settings,
+                                                                   progress=progress)
+    t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
+    values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
+    return Draws(u, t, values, lp, div, acc, steps, step_size, imm, seconds)
+
+
+def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndarray:
+    """The model's value of each observation at every draw: t of shape (..., k) →
+    (..., observations), `batch` draws at a time under vmap."""
+    flat = np.asarray(t).reshape(-1, np.shape(t)[-1])
+    mean, sd = problem.data()
+    run = _batched_residuals(problem, batch)
+    out = []
+    for b in range(0, len(flat), batch):
+        x = flat[b : b + batch]
+        padded = np.concatenate([x, np.repeat(x[-1:], batch - len(x), axis=0)])
+        out.append(np.asarray(run(jnp.asarray(padded)))[: len(x)])
+        if progress is not None:
+            progress(len(x))
+    return (mean + sd * np.concatenate(out)).reshape(*np.shape(t)[:-1], -1)
+
+
+@functools.lru_cache(maxsize=4)
+def _batched_residuals(problem: Problem, batch: int):
+    return jax.jit(jax.vmap(problem.residuals))
+
+
+# ---------------------------------------------------------------------------------------
+# ArviZ: InferenceData, diagnostics
+# ---------------------------------------------------------------------------------------
+
+
+def observation_labels(problem: Problem) -> list[str]:
+    return [f"{o.quantity}|{o.regime}|{o.time_s:g}s" for o in problem.observations]
+
+
+def inference_data(problem: Problem, draws: Draws, model: np.ndarray):
+    """An ArviZ `InferenceData`: posterior (natural units), sample_stats (with
+    `diverging`), observed_data, posterior_predictive (`y`: model plus the measurement
+    noise; `model`: without it), constant_data (the data's SDs)."""
+    az = _arviz()
+
+    mean, sd = problem.data()
+    noise = np.random.default_rng(draws.u.shape[1] + 1).normal(size=model.shape) * sd
+    coords = {"observation": observation_labels(problem)}
+    dims = {"y": ["observation"], "model": ["observation"], "sd": ["observation"]}
+    idata = az.from_dict(
+        posterior={n: draws.values[..., i] for i, n in enumerate(problem.names)},
+        sample_stats={"diverging": draws.diverging, "lp": draws.log_density, "acceptance_rate": draws.acceptance_rate,
+                      "n_steps": draws.leapfrog_steps,
+                      "step_size": np.repeat(draws.step_size[:, None], draws.u.shape[1], axis=1)},
+        posterior_predictive={"y": model + noise, "model": model},
+        observed_data={"y": mean},
+        constant_data={"sd": sd},
+        coords=coords, dims=dims,
+    )
+    idata.posterior.attrs.update({
+        "problem": problem.name, "free_parameters": list(problem.names),
+        "model_settings": json.dumps(dataclasses.asdict(problem.model)),  # the resolution `predict` simulates with
+        "warmup_seconds": draws.seconds["warmup"], "sampling_seconds": draws.seconds["sampling"]})
+    return idata
+
+
+def contraction(problem: Problem, draws: Draws) -> np.ndarray:
+    """Posterior contraction 1 − Var_post(t)/Var_prior(t) of each free parameter in its
+    fit coordinate: near 1 where the data pin it down, near 0 where only its prior does."""
+    post_var = np.var(draws.t.reshape(-1, draws.t.shape[-1]), axis=0)
+    prior_var = np.array([f.prior_density.sd_in(f.transform, f.lower, f.upper) ** 2 for f in problem.free])
+    return 1.0 - post_var / prior_var
+
+
+CONSTRAINED = 0.5
+"""Contraction above which a parameter counts as constrained by the data."""
+
+
+def posterior_summary(problem: Problem, draws: Draws, idata) -> dict:
+    """`summary.json`'s `posterior`, `divergences`, `sampling_seconds` and friends."""
+    az = _arviz()
+
+    stats = az.summary(idata, var_names=list(problem.names), kind="diagnostics")
+    shrink = contraction(problem, draws)
+    out = {}
+    for i, n in enumerate(problem.names):
+        v = draws.values[..., i].ravel()
+        q05, q50, q95 = np.quantile(v, [0.05, 0.5, 0.95])
+        out[n] = {"mean": float(v.mean()), "sd": float(v.std(ddof=1)), "q05": float(q05), "q50": float(q50), "q95": float(q95),
+                  "r_hat": float(stats.loc[n, "r_hat"]), "ess_bulk": float(stats.loc[n, "ess_bulk"]),
+                  "ess_tail": float(stats.loc[n, "ess_tail"]), "contraction": float(shrink[i]),
+                  "constrained_by": "data" if shrink[i] > CONSTRAINED else "prior",
+                  "prior": problem.free[i].prior_density.describe()}
+    return {
+        "posterior": out,
+        "divergences": int(draws.diverging.sum()),
+        "draws": int(draws.diverging.size),
+        "chains": int(draws.u.shape[0]),
+        "step_size": draws.step_size.tolist(),
+        "mean_leapfrog_steps": float(draws.leapfrog_steps.mean()),
+        "warmup_seconds": draws.seconds["warmup"],
+        "sampling_seconds": draws.seconds["sampling"],
+    }
+
+
+def predictive_check(problem: Problem, model_draws: np.ndarray, level: float = 0.9) -> list[dict]:
+    """Each observation against the `level` posterior predictive interval of its value
+    (model draws plus measurement noise)."""
+    mean, sd = problem.data()
+    rng = np.random.default_rng(1)
+    flat = model_draws.reshape(-1, model_draws.shape[-1])
+    y = flat + rng.normal(size=flat.shape) * sd
+    lo, hi = np.quantile(y, [(1 - level) / 2, (1 + level) / 2], axis=0)
+    return [{"observation": label, "data": float(m), "lower": float(a), "upper": float(b), "inside": bool(a <= m <= b)}
+            for label, m, a, b in zip(observation_labels(problem), mean, lo, hi)]
+
+
+# ---------------------------------------------------------------------------------------
+# The study: sample, check, files
+# ---------------------------------------------------------------------------------------
+
+
+class Posterior(NamedTuple):
+    draws: Draws
+    model: np.ndarray  # (chains, draws, observations): model values at each draw
+    idata: object  # arviz.InferenceData
+    summary: dict  # `posterior_summary` + "predictive_check"
+
+
+def run(cal, settings: SamplerSettings = SamplerSettings(), progress: bool = False) -> Posterior:
+    """Sample the posterior of a finished calibration (`calibration.Calibration`) from its
+    optimum, evaluate the model at every draw, diagnose with ArviZ."""
+    from tqdm.auto import tqdm
+
+    problem = cal.problem
+    with tqdm(total=settings.warmup + settings.samples, desc="posterior: NUTS", unit="draw", disable=not progress) as bar:
+        draws = sample(problem, cal.fit.t, cal.fit.jacobian, settings, progress=bar.update)
+    with tqdm(total=draws.t.shape[0] * draws.t.shape[1], desc="posterior: model at draws", unit="draw", disable=not progress) as bar:
+        model = model_values(problem, draws.t, progress=bar.update)
+    idata = inference_data(problem, draws, model)
+    summary = posterior_summary(problem, draws, idata)
+    summary["predictive_check"] = predictive_check(problem, model)
+    return Posterior(draws, model, idata, summary)
+
+
+def report(problem: Problem, result: Posterior) -> str:
+    """The posterior section of the calibration report."""
+    s = result.summary
+    n = s["draws"]
+    lines = ["", "## Posterior (NUTS)", "",
+             f"{s['chains']} chains × {n // s['chains']} draws after warmup, in {s['warmup_seconds']:.0f} s of warmup and "
+             f"{s['sampling_seconds']:.0f} s of sampling; {s['divergences']} divergent transitions "
+             f"({100 * s['divergences'] / n:.1f} %); {s['mean_leapfrog_steps']:.1f} leapfrog steps a draw on average. "
+             "Files: posterior.nc (ArviZ InferenceData), pairs.png, traces.png.", "",
+             "| parameter | prior | median | 90 % interval | R-hat | bulk ESS | contraction | constrained by |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, v in s["posterior"].items():
+        lines.append(f"| {name} | {v['prior']} | {v['q50']:.4g} | [{v['q05']:.4g}, {v['q95']:.4g}] | {v['r_hat']:.3f} | "
+                     f"{v['ess_bulk']:.0f} | {v['contraction']:.2f} | {'**data**' if v['constrained_by'] == 'data' else 'prior only'} |")
+    data = [k for k, v in s["posterior"].items() if v["constrained_by"] == "data"]
+    prior = [k for k, v in s["posterior"].items() if v["constrained_by"] != "data"]
+    lines += ["", f"Contraction is 1 − Var(posterior)/Var(prior) in the fit coordinate: the data constrain "
+              f"{', '.join(data) or 'no parameter'} (contraction > {CONSTRAINED}); "
+              f"{', '.join(prior) or 'no parameter'} {'is' if len(prior) == 1 else 'are'} set mostly by the prior and the bounds."]
+    bad = [k for k, v in s["posterior"].items() if not (v["r_hat"] < 1.01 and v["ess_bulk"] >= 400)]
+    if bad:
+        lines.append(f"Not converged to R-hat < 1.01 with bulk ESS ≥ 400: {', '.join(bad)}; run more draws (`--samples`) or chains.")
+    outside = [c["observation"] for c in s["predictive_check"] if not c["inside"]]
+    lines += ["", "Posterior predictive check (model at each draw plus the measurement noise): "
+              + (f"outside the 90 % predictive interval: {', '.join(outside)}." if outside
+                 else "every observation lies inside its 90 % predictive interval.")]
+    return "\n".join(lines) + "\n"
+
+
+def write(cal, result: Posterior, folder) -> None:
+    """Add the posterior to a calibration's folder: posterior.nc, the figures, and the
+    posterior's part of summary.json and report.md."""
+    from .. import io, plots
+    from . import calibration
+
+    folder = pathlib.Path(folder)
+    problem = cal.problem
+    io.atomic_write(folder / "posterior.nc", lambda f: f.write(_netcdf_bytes(result.idata)))
+    io.write_json(folder / "summary.json", {**calibration.summary(cal), **result.summary})
+    io.atomic_write_text(folder / "report.md", calibration.report(cal) + report(problem, result))
+    plots.posterior_pairs(problem.names, result.draws.values, result.draws.diverging, folder / "pairs.png", reference=cal.fit.values)
+    plots.posterior_traces(problem.names, result.draws.values, folder / "traces.png")
+    mean, sd = problem.data()
+    flat = result.model.reshape(-1, result.model.shape[-1])
+    y = flat + np.random.default_rng(2).normal(size=flat.shape) * sd
+    plots.fit_against_data(problem.observations, cal.model, folder / "fit.png", band=np.quantile(y, [0.05, 0.95], axis=0))
+
+
+def _netcdf_bytes(idata) -> bytes:
+    import os
+    import tempfile
+
+    fd, path = tempfile.mkstemp(suffix=".nc")
+    os.close(fd)
+    try:
+        idata.to_netcdf(path, engine="h5netcdf")
+        with open(path, "rb") as f:
+            return f.read()
+    finally:
+        os.unlink(path)
+
+
+# ---------------------------------------------------------------------------------------
+# Posterior predictive of any protocol
+# ---------------------------------------------------------------------------------------
+
+
+class Saved(NamedTuple):
+    """A posterior as `write` left it: draws in natural units, the fitted parameter set
+    they replace values of, the model resolution the posterior was sampled with, and
+    the data it was conditioned on."""
+
+    names: tuple[str, ...]
+    values: np.ndarray  # (chains, draws, k)
+    base: object  # Params
+    model: ModelSettings
+    observations: list  # of (quantity, condition, time_s, mean, sd)
+
+
+def read_saved(folder) -> Saved:
+    """The posterior in `folder` (a `jaxtissue calibrate --posterior` output); an
+    `InputError` naming `posterior` if it is missing or unreadable."""
+    import xarray as xr
+
+    from ..io import InputError, read_params_toml
+
+    folder = pathlib.Path(folder)
+    path = folder / "posterior.nc"
+    if not path.is_file():
+        raise InputError(f"`posterior` {folder}: no posterior.nc there (write one with `jaxtissue calibrate PROBLEM.toml --posterior --out DIR`)")
+    try:
+        posterior = xr.open_dataset(path, group="posterior", engine="h5netcdf").load()
+        observed = xr.open_dataset(path, group="observed_data", engine="h5netcdf").load()
+        sd = xr.open_dataset(path, group="constant_data", engine="h5netcdf").load()["sd"].values
+        names = tuple(np.atleast_1d(posterior.attrs["free_parameters"]).tolist())
+        model = ModelSettings(**json.loads(posterior.attrs["model_settings"]))
+        values = np.stack([posterior[n].values for n in names], axis=-1)
+    except (OSError, KeyError, ValueError, TypeError) as err:
+        raise InputError(f"`posterior` {path}: not a jaxtissue posterior ({type(err).__name__}: {err})") from None
+    base = read_params_toml(folder / "fitted.toml")
+    observations = []
+    for label, mean, s in zip(observed["observation"].values, observed["y"].values, sd):
+        quantity, condition, time_s = str(label).split("|")
+        observations.append((quantity, condition, float(time_s.rstrip("s")), float(mean), float(s)))
+    return Saved(names, values, base, model, observations)
+
+
+def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int = 0, batch: int = 25, progress=None):
+    """Posterior predictive of every scalar output over time: `draws` posterior draws
+    (chosen at random, without replacement) simulated with `protocol` at the posterior's
+    model resolution, `batch` at a time under vmap. An `xarray.Dataset` of each output
+    per (draw, time_s), plus `<output>_q05`, `_q50`, `_q95` per time."""
+    import xarray as xr
+
+    from ..protocol import save_times
+    from ..result import OUTPUTS, SCALARS
+    from ..simulate import simulate
+
+    flat = saved.values.reshape(-1, saved.values.shape[-1])
+    pick = np.random.default_rng(seed).choice(len(flat), size=min(draws, len(flat)), replace=False)
+    chosen = flat[pick]
+    m = saved.model
+    grid = m.grid(protocol.regime)
+
+    def one(v):
+        r = simulate(saved.base.replace(**dict(zip(saved.names, v))), protocol, t_end_s, grid,
+                     coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options())
+        return {k: getattr(r, k) for k in SCALARS}, r.failed
+
+    run = jax.jit(jax.vmap(one))
+    parts = []
+    for b in range(0, len(chosen), batch):
+        x = chosen[b : b + batch]
+        padded = np.concatenate([x, np.repeat(x[-1:], batch - len(x), axis=0)])
+        parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[: len(x)], run(jnp.asarray(padded))))
+        if progress is not None:
+            progress(len(x))
+    times = save_times(t_end_s, m.coupling_interval_s)
+    failed = np.concatenate([p[1] for p in parts])
+    data = {}
+    for k in SCALARS:
+        a = np.concatenate([p[0][k] for p in parts])
+        data[k] = (("draw", "time_s"), a, {"units": OUTPUTS[k].unit, "long_name": OUTPUTS[k].description})
+        ok = a[~failed]
+        for q in (5, 50, 95):
+            data[f"{k}_q{q:02d}"] = (("time_s",), np.quantile(ok, q / 100, axis=0) if len(ok) else np.full(len(times), np.nan),
+                                     {"units": OUTPUTS[k].unit})
+    for n, i in zip(saved.names, range(len(saved.names))):
+        data[n] = (("draw",), chosen[:, i])
+    data["failed"] = (("draw",), failed)
+    return xr.Dataset(data, coords={"time_s": times, "draw": np.arange(len(chosen))},
+                      attrs={"regime": protocol.regime, "period_s": np.asarray(protocol.period_s, float),
+                             "post_displacement_mm": np.asarray(protocol.post_displacement_mm, float), "draws": len(chosen)})
