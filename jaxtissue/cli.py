@@ -17,6 +17,7 @@ one line and exit code 1. Output folders appear complete or not at all.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import re
@@ -295,11 +296,22 @@ def cmd_simulate(args) -> int:
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps)
+    resolution = {}
+    if getattr(args, "params", None) and not args.grid:  # a fitted file: simulate at the resolution of the fit
+        from .studies.calibration import fitted_model
+
+        fitted = fitted_model(args.params)
+        if fitted is not None:
+            grid = fitted.grid(args.regime)
+            options = dataclasses.replace(fitted.options(), max_steps=args.max_steps)
+            resolution = {"beam": fitted.beam(), "coupling_interval_s": fitted.coupling_interval_s}
+            print(f"model resolution from {args.params} [model]: grid {grid.nx} x {grid.ny}, beam {fitted.beam_segments} x "
+                  f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
     kept = pathlib.Path(f"{args.out}.checkpoint")
     if kept.exists() and not args.resume:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
     if args.checkpoint_every is None:
-        result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress)
+        result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress, **resolution)
     else:
         if not args.resume:
             kept.mkdir(parents=True)

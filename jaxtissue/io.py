@@ -42,11 +42,16 @@ def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
     return doc, text
 
 
-def write_params_toml(params: Params, path) -> None:
-    """A TOML file loadable by `read_params_toml` (and `jaxtissue simulate --params`)."""
+def write_params_toml(params: Params, path, model: dict | None = None) -> None:
+    """A TOML file loadable by `read_params_toml` (and `jaxtissue simulate --params`);
+    `model`: a `[model]` table of the resolution the parameters were fitted at."""
     lines = ["# jaxtissue model parameters (units: see `jaxtissue params`)", "[parameters]"]
     for name, value in params.as_dict().items():
         lines.append(f"{name} = {value!r}  # {FIELDS[name].unit}")
+    if model:
+        lines += ["", "# The model resolution these values were fitted at; `jaxtissue simulate --params` uses it",
+                  "# unless --grid is given.", "[model]"]
+        lines += [f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v)}" for k, v in model.items()]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 

@@ -296,3 +296,20 @@ def test_predict_without_a_posterior_exits_2(sampled, capsys, make, message):
     assert main(["predict", "--posterior", str(source), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--posterior" in err and message in err and not out.exists()
+
+
+def test_fitted_file_simulates_at_the_fit_resolution_and_reproduces_the_report(sampled, capsys):
+    """`jaxtissue simulate --params fitted.toml` uses the fit's [model] table and gives
+    the model values the calibration reported, within 0.5 %."""
+    from jaxtissue.cli import main
+
+    folder, _ = sampled
+    out = folder.parent / "simulated"
+    assert main(["simulate", "--regime", "static", "--t-end", str(3 * WEEK), "--params", str(folder / "fitted.toml"),
+                 "--out", str(out)]) == 0
+    assert "model resolution from" in capsys.readouterr().out
+    run = json.loads((out / "summary.json").read_text())
+    reported = json.loads((folder / "summary.json").read_text())["observations"]
+    for o in reported:
+        simulated = run[o["name"]][run["times_s"].index(o["time_s"])]
+        assert simulated == pytest.approx(o["model"], rel=5e-3), o

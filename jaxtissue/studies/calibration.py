@@ -444,6 +444,15 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
     return problem
 
 
+def fitted_model(path) -> ModelSettings | None:
+    """The `[model]` table of a fitted parameter file (`write`): the resolution its
+    values were fitted at; None for a file without one."""
+    doc, _ = read_toml(path, "parameter", {"parameters", "model"} | set(FIELDS))
+    if "model" not in doc:
+        return None
+    return settings(ModelSettings, table(doc, "model", str(path)), str(path), "model")
+
+
 # ---------------------------------------------------------------------------------------
 # The whole study: fit, uncertainty, profiles, files
 # ---------------------------------------------------------------------------------------
@@ -568,7 +577,7 @@ def report(cal: Calibration) -> str:
         lines.append("Every free parameter is identifiable: its profile rises above χ²_min + 3.84 on both sides.")
     if strong:
         lines.append("Strongly correlated pairs (|ρ| > 0.95, Laplace approximation): " + ", ".join(f"{a}–{b} ({r:+.3f})" for a, b, r in strong) + ".")
-    lines += ["", "Files: summary.json, fitted.toml (`jaxtissue simulate --params fitted.toml`), waterfall.png, fit.png, profiles.png, correlation.png.", ""]
+    lines += ["", "Files: summary.json, fitted.toml (`jaxtissue simulate --params fitted.toml`, at the fit's `[model]` resolution), waterfall.png, fit.png, profiles.png, correlation.png.", ""]
     return "\n".join(lines)
 
 
@@ -576,7 +585,7 @@ def write(cal: Calibration, folder) -> None:
     """summary.json, fitted.toml, report.md and the figures into `folder`."""
     folder = pathlib.Path(folder)
     io.write_json(folder / "summary.json", summary(cal))
-    io.write_params_toml(cal.problem.params(jnp.asarray(cal.fit.t)), folder / "fitted.toml")
+    io.write_params_toml(cal.problem.params(jnp.asarray(cal.fit.t)), folder / "fitted.toml", model=dataclasses.asdict(cal.problem.model))
     io.atomic_write_text(folder / "report.md", report(cal))
     plots.waterfall(cal.fit.chi2_all, folder / "waterfall.png")
     plots.fit_against_data(cal.problem.observations, cal.model, folder / "fit.png")
