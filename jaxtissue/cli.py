@@ -416,8 +416,10 @@ def cmd_reproduce(args) -> int:
 
 def cmd_calibrate(args) -> int:
     from . import io
-    from .studies import calibration
+    from .studies import calibration, sweep
 
+    if args.posterior:
+        sweep.use_all_cores()  # chains split over the cores; before anything starts JAX's backend
     overrides = {} if args.starts is None else {"starts": args.starts}
     problem = calibration.read_problem(args.problem, overrides)
     io.check_output_folder(args.out, args.overwrite)

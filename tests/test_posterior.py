@@ -313,3 +313,40 @@ def test_fitted_file_simulates_at_the_fit_resolution_and_reproduces_the_report(s
     for o in reported:
         simulated = run[o["name"]][run["times_s"].index(o["time_s"])]
         assert simulated == pytest.approx(o["model"], rel=5e-3), o
+
+
+_CHAINS_OVER_DEVICES = """
+import sys, numpy as np, jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+from jaxtissue.studies import posterior as post
+from test_posterior import _linear_gaussian, _split_chains_settings
+s = _split_chains_settings()
+(u, *_), *_ = post.run_chains(post.nuts_programs(_linear_gaussian, s), np.arange(8.0).reshape(4, 2), np.eye(2), s,
+                              args=jnp.asarray([0.7, -0.2, 1.1]))
+np.save(sys.argv[1], u)
+print(len(jax.devices()))
+"""
+
+
+def _split_chains_settings():
+    return post.SamplerSettings(chains=4, warmup=40, samples=20)
+
+
+def test_chains_split_over_devices_give_the_same_draws(tmp_path):
+    """Four chains over two CPU devices (a process of its own: the device count is
+    fixed at start-up) draw what they draw on one device."""
+    import os
+    import pathlib
+    import subprocess
+    import sys
+
+    here = pathlib.Path(__file__).resolve().parent
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", PYTHONPATH=str(here))
+    out = subprocess.run([sys.executable, "-c", _CHAINS_OVER_DEVICES, str(tmp_path / "u.npy")], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "2"
+    s = _split_chains_settings()
+    (u, *_), *_ = post.run_chains(post.nuts_programs(_linear_gaussian, s), np.arange(8.0).reshape(4, 2), np.eye(2), s,
+                                  args=jnp.asarray([0.7, -0.2, 1.1]))
+    np.testing.assert_allclose(np.load(tmp_path / "u.npy"), u, rtol=1e-9, atol=1e-12)

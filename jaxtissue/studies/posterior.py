@@ -12,7 +12,8 @@ carries the Jacobian |dθ/du|. The gradient of ln p comes from forward-mode
 differentiation of the residuals (a handful of tangents through the coupled solve),
 wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 
-Chains run batched under `vmap`, each with its own warmup (Stan's window adaptation of
+Chains run batched under `vmap` (split over the devices when there are several, e.g.
+one per CPU core: `sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of
 the step size and a dense mass matrix, which follows the k_c,max–k_a ridge of the
 Engelmayr problem). R-hat, effective sample sizes and quantiles are ArviZ's.
 """
@@ -200,8 +201,17 @@ def nuts_programs(log_density, settings: SamplerSettings):
 
         return jax.lax.scan(one, state, keys)
 
-    return (jax.jit(jax.vmap(adapt, in_axes=(0, 0, None, None))),
-            jax.jit(jax.vmap(draws, in_axes=(0, 0, 0, 0, None))))
+    adapt = jax.vmap(adapt, in_axes=(0, 0, None, None))
+    draws = jax.vmap(draws, in_axes=(0, 0, 0, 0, None))
+    devices = jax.devices()
+    if len(devices) > 1 and settings.chains % len(devices) == 0:  # chains split over devices (e.g. one per core)
+        from jax.sharding import Mesh, PartitionSpec
+
+        mesh = Mesh(np.array(devices), ("chains",))
+        c, r = PartitionSpec("chains"), PartitionSpec()
+        adapt = jax.shard_map(adapt, mesh=mesh, in_specs=(c, c, r, r), out_specs=c, check_vma=False)
+        draws = jax.shard_map(draws, mesh=mesh, in_specs=(c, c, c, c, r), out_specs=c, check_vma=False)
+    return jax.jit(adapt), jax.jit(draws)
 
 
 def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50):
