@@ -43,6 +43,7 @@ FLAGS = {
     "resume": "--resume",
     "posterior": "--posterior",
     "draws": "--draws",
+    "hold_out": "--hold-out",
 }
 """The library's argument names and the flags that set them: messages from the library
 name arguments in backticks, and the command line shows the flag instead."""
@@ -129,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--warmup", type=_grid_size, default=200, metavar="N", help="with --posterior: warmup draws per chain (default 200)")
     k.add_argument("--samples", type=_grid_size, default=250, metavar="N", help="with --posterior: kept draws per chain (default 250)")
     k.add_argument("--seed", type=int, default=0, metavar="S", help="with --posterior: random seed (default 0)")
+    k.add_argument("--hold-out", metavar="CONDITION", help="with --posterior: calibrate without that condition's data, then predict them")
     _output_arguments(k)
     k.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     k.set_defaults(func=cmd_calibrate)
@@ -422,6 +424,13 @@ def cmd_calibrate(args) -> int:
         sweep.use_all_cores()  # chains split over the cores; before anything starts JAX's backend
     overrides = {} if args.starts is None else {"starts": args.starts}
     problem = calibration.read_problem(args.problem, overrides)
+    held_out = None
+    if args.hold_out is not None:
+        from .studies import posterior
+
+        if not args.posterior:
+            raise InputError("--hold-out needs --posterior (the held-out data are predicted from the posterior)")
+        problem, held_out = posterior.hold_out(problem, args.hold_out)
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     cal = calibration.calibrate(problem, with_profiles=not args.no_profiles, progress=progress)
@@ -433,7 +442,7 @@ def cmd_calibrate(args) -> int:
         from .studies import posterior
 
         settings = posterior.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples, seed=args.seed)
-        sampled = posterior.run(cal, settings, progress=progress)
+        sampled = posterior.run(cal, settings, progress=progress, held_out=held_out)
     with io.output_folder(args.out, args.overwrite) as tmp:
         calibration.write(cal, tmp)
         if sampled is not None:
@@ -444,6 +453,9 @@ def cmd_calibrate(args) -> int:
         print(f"posterior: {s['draws']} draws, {s['divergences']} divergent; "
               + ", ".join(f"{n} {v['q50']:.3g} [{v['q05']:.3g}, {v['q95']:.3g}] (R-hat {v['r_hat']:.3f}, ESS {v['ess_bulk']:.0f})"
                           for n, v in s["posterior"].items()))
+        for c in s.get("held_out", []):
+            print(f"held out {c['observation']}: data {c['data']:.4g}, 90 % predictive [{c['lower']:.4g}, {c['upper']:.4g}]"
+                  f" -> {'inside' if c['inside'] else 'OUTSIDE'}")
     print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
           + (", posterior.nc, pairs.png, traces.png)" if sampled is not None else ")"))
     return 0

@@ -171,7 +171,9 @@ WEEK = 604800.0
 @pytest.fixture(scope="module")
 def static_problem(tmp_path_factory):
     """A small static problem: DNA and collagen at 1–3 weeks, with SDs of 5 %, from the
-    default parameters; k_m0 and E_m0 free (E_m0 unseen by these data)."""
+    default parameters; k_m0 and E_m0 free (E_m0 unseen by these data). A second
+    condition, "repeat", holds the same culture's 3-week collagen: what the posterior
+    command holds out and predicts."""
     from helpers import TINY_MODEL
 
     import jaxtissue as jt
@@ -184,12 +186,14 @@ def static_problem(tmp_path_factory):
         for w in (1, 2, 3):
             v = float(getattr(r, q)[r.index(w * WEEK)])
             rows.append(f"{q},static,{w * WEEK},{v!r},{0.05 * v!r},{unit},\n")
+    v = float(r.collagen_mg_per_g[r.index(3 * WEEK)])
+    rows.append(f"collagen_mg_per_g,repeat,{3 * WEEK},{v!r},{0.05 * v!r},mg/g,\n")
     (folder / "m.csv").write_text(HEADER + "".join(rows))
     (folder / "problem.toml").write_text(
         'measurements = "m.csv"\n[parameters.free]\n'
         'k_m0 = { bounds = [5e-8, 1e-6], transform = "log" }\n'
         'E_m0_kPa_per_ug_g = { bounds = [0.2, 5.0], transform = "linear", prior = { normal = [1.0, 0.5] } }\n'
-        '[conditions.static]\nregime = "static"\n' + TINY_MODEL + "rtol = 1e-8\natol = 1e-11\n[fit]\nstarts = 1\nmax_steps = 20\nprofile_points = 2\n")
+        '[conditions.static]\nregime = "static"\n[conditions.repeat]\nregime = "static"\n' + TINY_MODEL + "rtol = 1e-8\natol = 1e-11\n[fit]\nstarts = 1\nmax_steps = 20\nprofile_points = 2\n")
     return cal.read_problem(folder / "problem.toml"), folder
 
 
@@ -217,7 +221,7 @@ def sampled(static_problem):
     _, folder = static_problem
     out = folder / "fit"
     argv = ["calibrate", str(folder / "problem.toml"), "--no-profiles", "--posterior", "--chains", "2", "--warmup", "40",
-            "--samples", "40", "--out", str(out)]
+            "--samples", "40", "--hold-out", "repeat", "--out", str(out)]
     stdout = io.StringIO()
     with contextlib.redirect_stdout(stdout):
         assert main(argv) == 0
@@ -233,7 +237,7 @@ def test_calibrate_posterior_command_writes_inference_data(static_problem, sampl
     idata = az.from_netcdf(out / "posterior.nc")
     assert {"posterior", "sample_stats", "observed_data", "posterior_predictive"} <= set(idata.groups())
     assert idata.posterior["k_m0"].shape == (2, 40) and "diverging" in idata.sample_stats
-    np.testing.assert_allclose(idata.observed_data["y"].values, problem.data()[0])
+    np.testing.assert_allclose(idata.observed_data["y"].values, problem.data()[0][:-1])  # the repeat held out
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["posterior"]) == {"k_m0", "E_m0_kPa_per_ug_g"}
     for v in summary["posterior"].values():
@@ -242,7 +246,18 @@ def test_calibrate_posterior_command_writes_inference_data(static_problem, sampl
     assert summary["posterior"]["E_m0_kPa_per_ug_g"]["constrained_by"] == "prior"  # … not the modulus
     assert {"divergences", "sampling_seconds", "predictive_check"} <= set(summary)
     assert "## Posterior (NUTS)" in (out / "report.md").read_text()
+    [held] = summary["held_out"]  # the repeat culture, predicted from the static data's posterior
+    assert held["observation"].startswith("collagen_mg_per_g|repeat") and held["inside"] and held["lower"] < held["data"] < held["upper"]
+    assert "held out collagen_mg_per_g|repeat" in stdout and len(summary["observations"]) == 6
     assert {"pairs.png", "traces.png"} <= {p.name for p in out.iterdir()}
+
+
+def test_hold_out_refuses_what_it_cannot_do(static_problem):
+    problem, _ = static_problem
+    with pytest.raises(InputError, match="`hold_out` = 'flex': no observation of that condition; allowed: repeat, static"):
+        post.hold_out(problem, "flex")
+    with pytest.raises(InputError, match="no observation left to calibrate on"):
+        post.hold_out(post.hold_out(problem, "repeat")[0], "static")
 
 
 def test_calibrate_posterior_bad_flags_exit_2(static_problem, capsys):
@@ -254,6 +269,8 @@ def test_calibrate_posterior_bad_flags_exit_2(static_problem, capsys):
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--chains" in err and not (folder / "x").exists()
+    assert main(["calibrate", str(folder / "problem.toml"), "--hold-out", "repeat", "--out", str(folder / "x")]) == 2
+    assert "--hold-out needs --posterior" in capsys.readouterr().err and not (folder / "x").exists()
 
 
 def test_predict_command_gives_bands_that_hold_the_draws(sampled, capsys):

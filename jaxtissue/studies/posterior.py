@@ -35,7 +35,7 @@ from ._problem_files import ModelSettings
 from .calibration import Problem
 
 
-def _arviz():
+def import_arviz():
     """ArviZ, imported without its notice about a future major version."""
     import warnings
 
@@ -299,7 +299,7 @@ def inference_data(problem: Problem, draws: Draws, model: np.ndarray):
     """An ArviZ `InferenceData`: posterior (natural units), sample_stats (with
     `diverging`), observed_data, posterior_predictive (`y`: model plus the measurement
     noise; `model`: without it), constant_data (the data's SDs)."""
-    az = _arviz()
+    az = import_arviz()
 
     mean, sd = problem.data()
     noise = np.random.default_rng(draws.u.shape[1] + 1).normal(size=model.shape) * sd
@@ -336,7 +336,7 @@ CONSTRAINED = 0.5
 
 def posterior_summary(problem: Problem, draws: Draws, idata) -> dict:
     """`summary.json`'s `posterior`, `divergences`, `sampling_seconds` and friends."""
-    az = _arviz()
+    az = import_arviz()
 
     stats = az.summary(idata, var_names=list(problem.names), kind="diagnostics")
     shrink = contraction(problem, draws)
@@ -385,9 +385,26 @@ class Posterior(NamedTuple):
     summary: dict  # `posterior_summary` + "predictive_check"
 
 
-def run(cal, settings: SamplerSettings = SamplerSettings(), progress: bool = False) -> Posterior:
+def hold_out(problem: Problem, condition: str) -> tuple[Problem, Problem]:
+    """(fitted, held out): `problem` without the observations of `condition`, and with
+    only those; an `InputError` if there are none to hold out or none left to fit."""
+    from ..io import InputError
+
+    held = tuple(o for o in problem.observations if o.regime == condition)
+    kept = tuple(o for o in problem.observations if o.regime != condition)
+    if not held:
+        conditions = sorted({o.regime for o in problem.observations} - {"seeded"})
+        raise InputError(f"`hold_out` = {condition!r}: no observation of that condition; allowed: {', '.join(conditions)}")
+    if not any(o.regime != "seeded" for o in kept):
+        raise InputError(f"`hold_out` = {condition!r}: no observation left to calibrate on")
+    return dataclasses.replace(problem, observations=kept), dataclasses.replace(problem, observations=held)
+
+
+def run(cal, settings: SamplerSettings = SamplerSettings(), progress: bool = False, held_out: Problem | None = None) -> Posterior:
     """Sample the posterior of a finished calibration (`calibration.Calibration`) from its
-    optimum, evaluate the model at every draw, diagnose with ArviZ."""
+    optimum, evaluate the model at every draw, diagnose with ArviZ. `held_out`: a
+    problem of observations left out of the calibration (`hold_out`), predicted from
+    the posterior and checked against its 90 % predictive intervals."""
     from tqdm.auto import tqdm
 
     problem = cal.problem
@@ -398,6 +415,11 @@ def run(cal, settings: SamplerSettings = SamplerSettings(), progress: bool = Fal
     idata = inference_data(problem, draws, model)
     summary = posterior_summary(problem, draws, idata)
     summary["predictive_check"] = predictive_check(problem, model)
+    if held_out is not None:
+        with tqdm(total=draws.t.shape[0] * draws.t.shape[1], desc="posterior: held-out predictions", unit="draw",
+                  disable=not progress) as bar:
+            predicted = model_values(held_out, draws.t, progress=bar.update)
+        summary["held_out"] = predictive_check(held_out, predicted)
     return Posterior(draws, model, idata, summary)
 
 
@@ -427,6 +449,15 @@ def report(problem: Problem, result: Posterior) -> str:
     lines += ["", "Posterior predictive check (model at each draw plus the measurement noise): "
               + (f"outside the 90 % predictive interval: {', '.join(outside)}." if outside
                  else "every observation lies inside its 90 % predictive interval.")]
+    if "held_out" in s:
+        lines += ["", "### Held-out observations", "",
+                  "Left out of the calibration and predicted from its posterior (model plus measurement noise):", "",
+                  "| observation | data | 90 % predictive interval | inside |", "|---|---|---|---|"]
+        for c in s["held_out"]:
+            lines.append(f"| {c['observation']} | {c['data']:.4g} | [{c['lower']:.4g}, {c['upper']:.4g}] | "
+                         f"{'yes' if c['inside'] else '**no**'} |")
+        n_in = sum(c["inside"] for c in s["held_out"])
+        lines += ["", f"{n_in} of {len(s['held_out'])} held-out observations fall inside their 90 % predictive interval."]
     return "\n".join(lines) + "\n"
 
 

@@ -1,0 +1,94 @@
+"""Posterior sampling of a calibration problem (default: the Engelmayr fit,
+calibrate/engelmayr2005.toml): jaxtissue's NUTS (blackjax, gradients by forward mode
+through the coupled model, chains over the CPU cores) against emcee's affine-invariant
+ensemble sampler (the gradient-free sampler pyPESTO offers), on the same jitted
+log-posterior in the same unbounded coordinates, in one run.
+
+Each sampler gets the same wall-clock budget: NUTS its warmup and draws, emcee as many
+ensemble steps as fit in the same time (its first half discarded as burn-in). Effective
+sample size: ArviZ's bulk ESS (minimum over the free parameters) of NUTS's chains;
+for emcee, walkers × kept steps / its integrated autocorrelation time (emcee's own
+estimate, the largest over the parameters). Compilation is timed apart.
+
+    python benchmarks/posterior.py [--chains 4] [--warmup 100] [--samples 100] [--walkers 16]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import time
+
+from jaxtissue.studies import sweep
+
+sweep.use_all_cores()  # before JAX starts: NUTS's chains over the cores
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxtissue.studies import calibration as cal  # noqa: E402
+from jaxtissue.studies import posterior as post  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+PROBLEM = pathlib.Path(__file__).resolve().parents[1] / "calibrate" / "engelmayr2005.toml"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--problem", default=str(PROBLEM))
+    parser.add_argument("--chains", type=int, default=4)
+    parser.add_argument("--warmup", type=int, default=100)
+    parser.add_argument("--samples", type=int, default=100)
+    parser.add_argument("--walkers", type=int, default=16)
+    args = parser.parse_args()
+
+    problem = cal.read_problem(args.problem, {"starts": 1})
+    k = len(problem.free)
+    print(f"{problem.name}: {k} free parameters, {len(problem.observations)} observations; {len(jax.devices())} CPU devices")
+    best = cal.fit(problem)
+    print(f"fit from the paper's values: chi2 = {best.chi2:.4g}")
+
+    # ---- NUTS
+    settings = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples)
+    imm0 = post.laplace_inverse_mass(problem, best.t, best.jacobian)
+    u0 = post.starting_points(problem, best.t, imm0, settings)
+    programs = post.nuts_programs(lambda u, a: post.log_density_fn(problem)(u), settings)
+    start = time.perf_counter()
+    short = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=1)
+    post.run_chains(programs, u0, imm0, short, chunk=args.samples)  # compiles both programs (the chunk length too)
+    compile_s = time.perf_counter() - start
+    (u, _, div, _, steps), _, _, seconds = post.run_chains(programs, u0, imm0, settings, chunk=args.samples)
+    nuts_s = seconds["warmup"] + seconds["sampling"]
+    az = post.import_arviz()
+    ess_nuts = np.asarray(az.ess(az.from_dict(posterior={"u": u}), method="bulk")["u"].values)
+    print(f"NUTS: {args.chains} chains x ({args.warmup} warmup + {args.samples} draws), {steps.mean():.1f} leapfrog steps a draw, "
+          f"{int(div.sum())} divergent; {nuts_s:.0f} s after {compile_s:.0f} s of compilation (and first run); "
+          f"min bulk ESS {ess_nuts.min():.0f} -> {ess_nuts.min() / nuts_s:.3g} ESS/s")
+
+    # ---- emcee, same log density (no gradient), walkers evaluated at once under vmap
+    import emcee
+
+    log_density = jax.jit(jax.vmap(post.log_density_fn(problem)))
+    walkers = np.asarray(u0[0]) + 0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)) @ np.linalg.cholesky(imm0).T
+    start = time.perf_counter()
+    jax.block_until_ready(log_density(jnp.asarray(walkers)))
+    compile_e = time.perf_counter() - start
+    sampler = emcee.EnsembleSampler(args.walkers, k, lambda x: np.asarray(log_density(jnp.asarray(x))), vectorize=True)
+    state = walkers
+    start = time.perf_counter()
+    while time.perf_counter() - start < nuts_s:
+        state = sampler.run_mcmc(state, 10, progress=False)
+    emcee_s = time.perf_counter() - start
+    n = sampler.iteration
+    tau = np.max(sampler.get_autocorr_time(discard=n // 2, quiet=True))
+    ess_emcee = args.walkers * (n - n // 2) / tau
+    print(f"emcee: {args.walkers} walkers x {n} steps ({n // 2} kept), autocorrelation time {tau:.0f} steps "
+          f"(a reliable estimate needs > 50 tau = {50 * tau:.0f} steps); {emcee_s:.0f} s after {compile_e:.0f} s of compilation; "
+          f"ESS {ess_emcee:.0f} -> {ess_emcee / emcee_s:.3g} ESS/s")
+    print(f"effective samples per second, NUTS / emcee: {(ess_nuts.min() / nuts_s) / (ess_emcee / emcee_s):.2f}x (goal >= 5x)")
+
+
+if __name__ == "__main__":
+    main()
