@@ -3,7 +3,7 @@ in-vitro mechanical conditioning (Soares & Sacks 2016; docs/model.md).
 
 The model sits at the package root (params → grid → growth → beam → coupling →
 simulate → result); `jaxtissue.numerics` holds the general numerics and
-`jaxtissue.studies` the workflows built on `simulate` (calibration, optimisation,
+`jaxtissue.studies` the workflows built on `simulate` (calibration, posterior, optimisation,
 sweeps, sensitivities, the paper's study, checkpointed runs)."""
 
 import jax
@@ -26,6 +26,6 @@ from .simulate import SolverOptions as SolverOptions, simulate as simulate  # no
 from .state import State as State, Transport as Transport  # noqa: E402
 
 from . import studies as studies  # noqa: E402
-from .studies import calibration, checkpoint, optimization, reproduce, sensitivity, sweep  # noqa: E402, F401  (jt.calibration, …)
+from .studies import calibration, checkpoint, optimization, posterior, reproduce, sensitivity, sweep  # noqa: E402, F401  (jt.calibration, …)
 
 __version__ = "0.1.0"

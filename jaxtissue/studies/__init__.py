@@ -1,5 +1,6 @@
 """Workflows on top of `simulate`, one module each: `calibration` (fits, Laplace
-approximation, profile likelihoods), `optimization` (protocol design, with the `objectives` and limits it may use), `sweep` (batch
+approximation, profile likelihoods), `posterior` (Bayesian calibration with the
+`priors` of the free parameters, predictive bands), `optimization` (protocol design, with the `objectives` and limits it may use), `sweep` (batch
 runs), `sensitivity` (d ln output / d ln parameter), `reproduce` (the paper's study)
 and `checkpoint` (runs in saved segments). Their problem files share one reader
 (`_problem_files`)."""
@@ -9,6 +10,8 @@ from . import (
     checkpoint as checkpoint,
     objectives as objectives,
     optimization as optimization,
+    posterior as posterior,
+    priors as priors,
     reproduce as reproduce,
     sensitivity as sensitivity,
     sweep as sweep,
