@@ -367,3 +367,90 @@ def test_chains_split_over_devices_give_the_same_draws(tmp_path):
     (u, *_), *_ = post.run_chains(post.nuts_programs(_linear_gaussian, s), np.arange(8.0).reshape(4, 2), np.eye(2), s,
                                   args=jnp.asarray([0.7, -0.2, 1.1]))
     np.testing.assert_allclose(np.load(tmp_path / "u.npy"), u, rtol=1e-9, atol=1e-12)
+
+
+# ---- protocol design under uncertainty
+
+
+def test_risk_measures_and_chance_constraints():
+    """The quantile risk takes the unfavourable tail; a ceiling met by its p-quantile
+    holds for at least a fraction p of the draws (and a floor by its (1 − p)-quantile)."""
+    from jaxtissue.studies.robust import Uncertainty
+
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=200)
+    u = Uncertainty("p", ("k_m0",), np.zeros((1, 1)), risk="quantile", quantile=0.05, constraint_probability=0.9)
+    assert float(u.objective(jnp.asarray(J), +1)) == pytest.approx(np.quantile(J, 0.05))
+    assert float(u.objective(jnp.asarray(J), -1)) == pytest.approx(np.quantile(J, 0.95))
+    values = rng.lognormal(size=(200, 2))
+    ceiling, floor = np.asarray(u.limit_values(jnp.asarray(values), ["ceiling", "floor"]))
+    assert np.mean(values[:, 0] <= ceiling) >= 0.9 and np.mean(values[:, 1] >= floor) >= 0.9
+    mean = Uncertainty("p", ("k_m0",), np.zeros((1, 1)))
+    np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), ["ceiling", "floor"])), values.mean(axis=0))
+
+
+ROBUST = """
+objective = "total_collagen"
+t_end_s = 1814400.0
+[constraints]
+post_force_max_N = 0.02
+[uncertainty]
+posterior = "{posterior}"
+{extra}
+[optimizer]
+starts = 1
+steps = 4
+learning_rate = 0.3
+inner_steps = 2
+grid_points = 3
+""" + "\n[model]\nny = 8\nflex_nx = 2\nbeam_segments = 8\nbeam_steps_per_cycle = 24\ncoupling_interval_s = 604800.0\n"
+
+
+@pytest.mark.parametrize("extra, message", [
+    ('risk = "quantile"\nquantile = 1.5', "[uncertainty] quantile = 1.5 must be a number in (0, 1)"),
+    ("constraint_probability = 0", "constraint_probability = 0 must be a number in (0, 1)"),
+    ('risk = "worst"', "risk = 'worst'; allowed: 'mean', 'quantile'"),
+    ("draws = 70\ncheck_draws = 20", "draws + check_draws = 90 exceeds the posterior's 80 draws"),
+])
+def test_bad_uncertainty_tables_exit_2(sampled, capsys, extra, message):
+    from jaxtissue.cli import main
+
+    folder, _ = sampled
+    problem = folder.parent / "robust_bad.toml"
+    problem.write_text(ROBUST.format(posterior=folder.name, extra=extra))
+    out = folder.parent / "never"
+    assert main(["optimize", str(problem), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err and not out.exists()
+
+
+def test_uncertainty_needs_a_posterior_there(sampled, capsys):
+    from jaxtissue.cli import main
+
+    folder, _ = sampled
+    problem = folder.parent / "robust_missing.toml"
+    problem.write_text(ROBUST.format(posterior="no_such_folder", extra=""))
+    assert main(["optimize", str(problem), "--out", str(folder.parent / "never")]) == 2
+    assert "[uncertainty] posterior = " in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_robust_design_meets_its_declared_probability_on_fresh_draws(sampled):
+    """A chance-constrained design over 8 posterior draws, checked on 40 fresh ones
+    beside the point-estimate optimum."""
+    from jaxtissue.cli import main
+
+    folder, _ = sampled
+    problem = folder.parent / "robust.toml"
+    problem.write_text(ROBUST.format(posterior=folder.name, extra='risk = "quantile"\nquantile = 0.1\n'
+                                                                     "constraint_probability = 0.9\ndraws = 8\ncheck_draws = 40"))
+    out = folder.parent / "robust_out"
+    assert main(["optimize", str(problem), "--out", str(out), "--no-progress"]) == 0
+    r = json.loads((out / "summary.json").read_text())["robust"]
+    for key in ("robust_optimum", "point_estimate_optimum"):
+        assert {"objective", "objective_mean", "constraint_probability", "protocol"} <= set(r[key])
+    p = r["robust_optimum"]["constraint_probability"]
+    print(f"fresh draws: robust optimum meets the limit in {p:.2f}, the point-estimate optimum in "
+          f"{r['point_estimate_optimum']['constraint_probability']:.2f} (declared 0.9)")
+    assert p >= 0.9 - 2 * math.sqrt(0.09 / 40)
+    assert "## Under uncertainty" in (out / "report.md").read_text()

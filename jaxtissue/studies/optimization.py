@@ -41,6 +41,7 @@ from ..protocol import LUMPING_RULES, THREE_WEEKS_S, Protocol, interval_bounds
 from ..simulate import simulate
 from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 from .objectives import CONSTRAINTS, OBJECTIVES, conditioning_dose
+from .robust import Uncertainty, check, read_uncertainty
 
 VARIABLES = ("period_s", "post_displacement_mm")
 DEFAULT_BOUNDS = {"period_s": (0.25, 10.0), "post_displacement_mm": (0.0, 10.0)}
@@ -84,6 +85,7 @@ class Design:
     model: ModelSettings = DESIGN_MODEL
     settings: OptimizerSettings = OptimizerSettings()
     name: str = "design"
+    uncertainty: Uncertainty | None = None  # judge protocols over posterior draws (`robust`)
 
     def __post_init__(self):
         if self.objective not in OBJECTIVES:
@@ -150,16 +152,33 @@ class Design:
         return jnp.tile(jnp.stack([jnp.asarray(period_s, float), jnp.asarray(post_displacement_mm, float)]), (self.stages, 1))
 
     # ---- the model
-    def evaluate(self, theta, autodiff="reverse"):
-        """(objective, constraint values in `constraints` order, failed) at θ."""
+    def evaluate_with(self, theta, params: Params, autodiff="reverse"):
+        """(objective, constraint values in `constraints` order, failed) at θ with `params`."""
         m = self.model
         protocol = self.protocol(theta)
-        result = simulate(self.params, protocol, self.t_end_s, m.grid("flex"), coupling_interval_s=m.coupling_interval_s,
+        result = simulate(params, protocol, self.t_end_s, m.grid("flex"), coupling_interval_s=m.coupling_interval_s,
                           beam=m.beam(), options=m.solver_options(autodiff))
         dose = conditioning_dose(protocol, interval_bounds(self.t_end_s, m.coupling_interval_s))
         J = OBJECTIVES[self.objective].fn(result, dose)
         values = jnp.stack([CONSTRAINTS[n].value(result) for n in self.constraints]) if self.constraints else jnp.zeros(0)
         return J, values, result.failed
+
+    def evaluate_draws(self, theta, draws, autodiff="reverse"):
+        """`evaluate_with` for each posterior draw (rows of `draws`, natural units of
+        `uncertainty.names`), at once under vmap."""
+        names = self.uncertainty.names
+        return jax.vmap(lambda v: self.evaluate_with(theta, self.params.replace(**{n: v[i] for i, n in enumerate(names)}), autodiff))(
+            jnp.asarray(draws))
+
+    def evaluate(self, theta, autodiff="reverse"):
+        """(objective, constraint values in `constraints` order, failed) at θ: with
+        `uncertainty`, their risk measures over the optimisation's posterior draws."""
+        u = self.uncertainty
+        if u is None:
+            return self.evaluate_with(theta, self.params, autodiff)
+        J, values, failed = self.evaluate_draws(theta, u.split()[0], autodiff)
+        kinds = [CONSTRAINTS[n].kind for n in self.constraints]
+        return u.objective(J, OBJECTIVES[self.objective].sense), u.limit_values(values, kinds), jnp.any(failed)
 
     def violation(self, values, margin=0.0):
         """g (relative; ≤ 0 where met) of constraint values, limits tightened by `margin`."""
@@ -344,6 +363,7 @@ class Study(NamedTuple):
     baseline_values: np.ndarray
     grid: GridResult
     optimum: OptimizationResult
+    robust: dict | None = None  # with `uncertainty`: this optimum and the point-estimate one on fresh draws
 
 
 def _limits_text(design: Design, values) -> str:
@@ -374,14 +394,34 @@ def run(design: Design, progress: bool = False) -> Study:
     scale = max(abs(float(J0)), 1e-12)
     with tqdm(total=design.settings.steps + 1, desc="optimise", unit="step", disable=not progress) as bar:
         optimum = optimize(design, starts, scale, progress=bar.update)
-    return Study(design, float(J0), np.asarray(V0), grid, optimum)
+    study = Study(design, float(J0), np.asarray(V0), grid, optimum)
+    if design.uncertainty is None:
+        return study
+    point = run(dataclasses.replace(design, uncertainty=None), progress)  # the same problem at the point estimate
+    fresh = design.uncertainty.split()[1]
+    evaluate = jax.jit(design.evaluate_draws)
+    robust = {
+        "posterior": design.uncertainty.posterior, "risk": design.uncertainty.risk, "quantile": design.uncertainty.quantile,
+        "declared_constraint_probability": design.uncertainty.constraint_probability,
+        "optimisation_draws": design.uncertainty.draws,
+        "robust_optimum": {"protocol": optimum_protocol(study),
+                           **check(design, jnp.asarray(_theta(study)), fresh, evaluate)},
+        "point_estimate_optimum": {"protocol": optimum_protocol(point),
+                                   **check(design, jnp.asarray(_theta(point)), fresh, evaluate)},
+    }
+    return study._replace(robust=robust)
+
+
+def _theta(study: Study):
+    d = study.design
+    if study.optimum.best is not None:
+        return study.optimum.best
+    return np.asarray(d.constant(study.grid.best["period_s"], study.grid.best["post_displacement_mm"]))
 
 
 def optimum_protocol(study: Study) -> dict:
     """The optimum as {"period_s", "post_displacement_mm"} or a schedule."""
-    d, theta = study.design, study.optimum.best
-    if theta is None:  # only the grid found feasible points
-        theta = np.asarray(d.constant(study.grid.best["period_s"], study.grid.best["post_displacement_mm"]))
+    d, theta = study.design, _theta(study)
     if d.stages == 1:
         return {"period_s": float(theta[0, 0]), "post_displacement_mm": float(theta[0, 1])}
     return {"stage_length_s": d.stage_length_s, "period_s": theta[:, 0].tolist(), "post_displacement_mm": theta[:, 1].tolist()}
@@ -419,6 +459,7 @@ def summary(study: Study) -> dict:
             "gradient_to_optimum": o.seconds_to_best, "gradient_total": o.seconds, "gradient_compile": o.compile_seconds,
             "grid_total": g.seconds, "grid_compile": g.compile_seconds,
         },
+        **({"robust": study.robust} if study.robust is not None else {}),
     }
 
 
@@ -457,6 +498,8 @@ def report(study: Study) -> str:
     lines.append(f"The optimum is {better} the best grid point and changes the objective by {100 * gain:+.1f} % against the paper's protocol.")
     if d.stages > 1:
         lines.append(_schedule_diagnosis(study, s))
+    if study.robust is not None:
+        lines += _robust_lines(study.robust, d)
     lines += [
         "", "## Cost", "",
         f"Gradient optimisation: {d.settings.starts} starts × {d.settings.steps} Adam steps, best iterate after {sec['gradient_to_optimum']:.1f} s "
@@ -466,6 +509,31 @@ def report(study: Study) -> str:
         "protocols with the optimisation paths), history.png" + (", schedule.png" if d.stages > 1 else "") + ".", "",
     ]
     return "\n".join(lines)
+
+
+def _robust_lines(r: dict, d: Design) -> list[str]:
+    u = d.uncertainty
+    measure = "mean" if r["risk"] == "mean" else f"{r['quantile']:g}-quantile (the unfavourable tail)"
+    p = r["declared_constraint_probability"]
+    out = ["", "## Under uncertainty", "",
+           f"Posterior `{r['posterior']}`: the objective is its {measure} over {r['optimisation_draws']} posterior draws"
+           + (f", and each limit must hold for {100 * p:g} % of them" if p is not None else ", the limits on the draws' mean values") + ". "
+           f"Both optima, checked on {u.check_draws} fresh draws:", "",
+           "| optimum | protocol | objective (risk measure) | objective (mean) | limits met in | failed |", "|---|---|---|---|---|---|"]
+    for key, label in (("robust_optimum", "robust"), ("point_estimate_optimum", "point estimate")):
+        c = r[key]
+        proto = c["protocol"]
+        text = (f"T = {proto['period_s']:.3g} s, u = {proto['post_displacement_mm']:.3g} mm" if d.stages == 1 else "schedule")
+        out.append(f"| {label} | {text} | {c['objective']:.5g} | {c['objective_mean']:.5g} | {100 * c['constraint_probability']:.0f} % | {c['failed']} |")
+    pe = r["point_estimate_optimum"]
+    out += ["", f"The point-estimate protocol breaks a limit for {100 * (1 - pe['constraint_probability']):.0f} % of plausible tissues."]
+    proto = r["robust_optimum"]["protocol"]
+    if d.stages == 1:
+        inside = 0.5 <= proto["period_s"] <= 2.0 and 2.5 <= proto["post_displacement_mm"] <= 10.0
+        out.append(f"The robust optimum lies {'inside' if inside else '**outside**'} the calibrated conditions (0.5–2 s periods, "
+                   "2.5–10 mm): " + ("the data cover it." if inside else "the model extrapolates there; its predictive spread is "
+                                     "the posterior's only, not the model's error."))
+    return out
 
 
 def _schedule_diagnosis(study: Study, s: dict) -> str:
@@ -499,7 +567,7 @@ def write(study: Study, folder) -> None:
 # Problem files
 # ---------------------------------------------------------------------------------------
 
-_TOP = {"name", "objective", "parameters", "protocol", "bounds", "constraints", "model", "optimizer", "t_end_s"}
+_TOP = {"name", "objective", "parameters", "protocol", "bounds", "constraints", "model", "optimizer", "t_end_s", "uncertainty"}
 _PROTOCOL = {"stages", "stage_length_s", "hold_fraction", "lumping"}
 
 
@@ -550,6 +618,7 @@ def read_design(path, overrides: dict | None = None) -> Design:
             t_end_s=number(doc.get("t_end_s", THREE_WEEKS_S), f"{where}: t_end_s", positive=True), hold_fraction=hold, lumping=lumping,
             model=settings(ModelSettings, {"coupling_interval_s": DESIGN_MODEL.coupling_interval_s, **table(doc, "model", where)}, where, "model"),
             settings=settings(OptimizerSettings, optimizer, where, "optimizer"), name=str(doc.get("name", path.stem)),
+            uncertainty=read_uncertainty(doc["uncertainty"], where, path.parent) if "uncertainty" in doc else None,
         )
     except InputError as err:
         if str(err).startswith(where):
