@@ -410,8 +410,10 @@ def cmd_reproduce(args) -> int:
     if failed:
         print(f"jaxtissue: error: {'; '.join(f'{n}: {as_flags(results[n].failure_message())}' for n in failed)}. Nothing was written.", file=sys.stderr)
         return 1
+    print("running the calibrated model's posterior draws ...")
+    bands = reproduce.calibrated_bands(args.t_end)
     with io.output_folder(args.out, args.overwrite) as tmp:
-        reproduce.write(results, params, tmp)
+        reproduce.write(results, params, tmp, bands)
     print(f"wrote {args.out}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
     return 0
 

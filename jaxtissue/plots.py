@@ -51,16 +51,29 @@ def profiles(result, path, title="static culture"):
     plt.close(fig)
 
 
-def time_series(results: dict, path):
+def _band(ax, bands, label, key, colour, scale=1.0):
+    """The calibrated model's median (dashed) and 90 % band of `key` for case `label`."""
+    if bands and label in bands:
+        b = bands[label]
+        days = np.asarray(b["time_s"]) / DAY_S
+        lo, mid, hi = (scale * np.asarray(b[key][i]) for i in range(3))
+        ax.fill_between(days, lo, hi, color=colour, alpha=0.18, lw=0)
+        ax.plot(days, mid, color=colour, ls="--", lw=1, label=f"calibrated, {label} (median, 90 %)")
+
+
+def time_series(results: dict, path, bands: dict | None = None):
     """DNA, collagen and E_eff versus time with the Engelmayr data (Figs 9, 10a).
 
-    `results` maps a label (its regime first: "static", "flex…") to a `Result`."""
+    `results` maps a label (its regime first: "static", "flex…") to a `Result`;
+    `bands` (optional) maps some labels to {"time_s": times, key: (q05, q50, q95)}:
+    the calibrated model's posterior predictive, drawn beside the runs."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
     for (label, result), colour in zip(results.items(), plt.cm.tab10.colors):
         days = np.asarray(result.ts) / DAY_S
         regime = "flex" if label.startswith("flex") else "static"
         for ax, key in zip(axes, _PANELS):
             ax.plot(days, np.asarray(getattr(result, key)), color=colour, label=f"model, {label}")
+            _band(ax, bands, label, key, colour)
             if label in ("static", "flex"):
                 obs = [o for o in observations(key, regime) if o.regime == regime]
                 if obs:
@@ -80,14 +93,17 @@ def time_series(results: dict, path):
     plt.close(fig)
 
 
-def rigidity_and_force(results: dict, path):
-    """Flexural rigidity EI and peak post force versus time (Fig. 10)."""
+def rigidity_and_force(results: dict, path, bands: dict | None = None):
+    """Flexural rigidity EI and peak post force versus time (Fig. 10), with the
+    calibrated model's bands (`time_series`) where given."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     for (label, result), colour in zip(results.items(), plt.cm.tab10.colors):
         days = np.asarray(result.ts) / DAY_S
         axes[0].plot(days, 1e6 * np.asarray(result.EI_N_m2), color=colour, label=label)
+        _band(axes[0], bands, label, "EI_N_m2", colour, 1e6)
         if label != "static":
             axes[1].plot(days, 1e3 * np.asarray(result.post_force_max_N), color=colour, label=label)
+            _band(axes[1], bands, label, "post_force_max_N", colour, 1e3)
     axes[0].set_ylabel("EI at mid-section (N mm²)")
     axes[1].set_ylabel("peak post force (mN)")
     for ax in axes:

@@ -454,3 +454,18 @@ def test_robust_design_meets_its_declared_probability_on_fresh_draws(sampled):
           f"{r['point_estimate_optimum']['constraint_probability']:.2f} (declared 0.9)")
     assert p >= 0.9 - 2 * math.sqrt(0.09 / 40)
     assert "## Under uncertainty" in (out / "report.md").read_text()
+
+
+def test_reproduce_bands_from_a_posterior_folder(sampled):
+    """`reproduce.calibrated_bands`: the static and flex cases over posterior draws."""
+    import jaxtissue as jt
+
+    folder, _ = sampled
+    bands = jt.reproduce.calibrated_bands(t_end_s=WEEK, draws=3, folder=folder)
+    assert set(bands) == {"static", "flex"}
+    for b in bands.values():
+        assert b["draws"] == 3 and b["failed"] == 0 and b["time_s"][-1] == pytest.approx(WEEK)
+        lo, mid, hi = b["collagen_mg_per_g"]
+        assert np.all(lo <= mid) and np.all(mid <= hi) and mid[-1] > 0
+    assert bands["flex"]["post_force_max_N"][1][-1] > 0 == bands["static"]["post_force_max_N"][1][-1]
+    assert jt.reproduce.calibrated_bands(folder=folder.parent / "none") is None

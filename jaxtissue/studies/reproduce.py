@@ -4,6 +4,8 @@ into figures, a summary and a Markdown report."""
 
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 
 from .. import io, plots
@@ -23,6 +25,29 @@ CASES = {
 }
 KEYS = MEASURABLE
 """The outputs the report compares with data."""
+
+CALIBRATED = pathlib.Path(__file__).resolve().parent / "engelmayr2005_posterior"
+"""Shipped posterior draws of the Engelmayr calibration (`jaxtissue calibrate
+calibrate/engelmayr2005.toml --posterior`): posterior.nc and fitted.toml."""
+BANDED = ("static", "flex")
+"""The cases drawn with the calibrated model's predictive bands."""
+
+
+def calibrated_bands(t_end_s=T_END_S, draws: int = 32, folder=CALIBRATED, progress=None) -> dict | None:
+    """The calibrated model's posterior predictive of the `BANDED` cases: {case:
+    {"time_s": times, output: (q05, q50, q95)}}, from `draws` shipped posterior draws at
+    the calibration's resolution; None where no posterior is shipped."""
+    from . import posterior
+
+    if not (pathlib.Path(folder) / "posterior.nc").is_file():
+        return None
+    saved = posterior.read_saved(folder)
+    bands = {}
+    for name in BANDED:
+        ds = posterior.predict(saved, CASES[name], t_end_s, draws=draws, progress=progress)
+        bands[name] = {"time_s": ds["time_s"].values, "draws": int(ds.sizes["draw"]), "failed": int(ds["failed"].values.sum()),
+                       **{k: tuple(ds[f"{k}_q{q:02d}"].values for q in (5, 50, 95)) for k in KEYS + ("EI_N_m2",)}}
+    return bands
 
 
 def run_cases(params, t_end_s=T_END_S, paper_rule_C=70.0, progress=False, log=print, flex_grid=None, beam=BeamGrid()):
@@ -52,21 +77,25 @@ def _when(result) -> str | None:
     return None if abs(t - THREE_WEEKS_S) < 1.0 else f"t = {t:g} s"
 
 
-def write(results: dict, params, folder) -> None:
-    """Figures, per-case NetCDF files, summary.json and report.md into `folder`."""
+def write(results: dict, params, folder, bands: dict | None = None) -> None:
+    """Figures, per-case NetCDF files, summary.json and report.md into `folder`;
+    `bands` (`calibrated_bands`) add the calibrated model to Figs 9 and 10."""
     main = {k: results[k] for k in CASES}
     plots.profiles(results["static"], folder / "fig5_profiles_static.png", "static culture")
     plots.profiles(results["flex"], folder / "fig7_profiles_flex.png", "flex 1 Hz, 5 mm")
     plots.ecm_maps({k: results[k] for k in ("static", "flex", "flex_paper_rule")}, folder / "fig8_ecm_maps.png")
-    plots.time_series(main, folder / "fig9_contents.png")
-    plots.rigidity_and_force(main, folder / "fig10_rigidity_force.png")
+    plots.time_series(main, folder / "fig9_contents.png", bands)
+    plots.rigidity_and_force(main, folder / "fig10_rigidity_force.png", bands)
     (folder / "cases").mkdir()
     for name, r in results.items():
         io.write_netcdf(r.to_xarray(), folder / "cases" / f"{name}.nc")
     summary = {name: three_week(r) for name, r in results.items()}
     summary["params"] = params.as_dict()
+    if bands:
+        summary["calibrated"] = {name: {k: {"q05": float(b[k][0][-1]), "q50": float(b[k][1][-1]), "q95": float(b[k][2][-1])} for k in KEYS}
+                                 for name, b in bands.items()}
     io.write_json(folder / "summary.json", summary)
-    io.atomic_write_text(folder / "report.md", report(results, params))
+    io.atomic_write_text(folder / "report.md", report(results, params, bands))
 
 
 def _data_cell(quantity, regime):
@@ -74,7 +103,22 @@ def _data_cell(quantity, regime):
     return f"{obs[0].mean:g} ± {obs[0].sd:g}" if obs else "—"
 
 
-def report(results: dict, params) -> str:
+def _calibrated_lines(bands: dict | None) -> list[str]:
+    if not bands:
+        return ["", "No calibrated posterior is shipped with this installation, so Figs 9 and 10 show the paper's parameters only."]
+    b = next(iter(bands.values()))
+    out = ["", "## The calibrated model", "",
+           f"Dashed lines and shaded bands in Figs 9 and 10: median and 90 % band of the model over {b['draws']} draws of the "
+           "shipped posterior of the Engelmayr calibration (`jaxtissue calibrate calibrate/engelmayr2005.toml --posterior`; "
+           "draws simulated at that calibration's resolution, not fitted on the fly). At the end of the run:", "",
+           "| case | DNA (µg/g) | collagen (mg/g) | E_eff (kPa) |", "|---|---|---|---|"]
+    for name, b in bands.items():
+        cells = [f"{b[k][1][-1]:.4g} [{b[k][0][-1]:.4g}, {b[k][2][-1]:.4g}]" for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa")]
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    return out
+
+
+def report(results: dict, params, bands: dict | None = None) -> str:
     s = {name: three_week(r) for name, r in results.items()}
     when = _when(results["static"])
     lines = [
@@ -128,4 +172,5 @@ def report(results: dict, params) -> str:
         "Figures: `fig5_profiles_static.png`, `fig7_profiles_flex.png`, `fig8_ecm_maps.png`, "
         "`fig9_contents.png`, `fig10_rigidity_force.png`; per-case results in `cases/*.nc`.",
     ]
+    lines += _calibrated_lines(bands)
     return "\n".join(lines) + "\n"
