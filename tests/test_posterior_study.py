@@ -257,7 +257,7 @@ def test_reproduce_bands_from_a_posterior_folder(sampled):
     bands = jt.reproduce.calibrated_bands(t_end_s=WEEK, draws=3, folder=folder)
     assert set(bands) == {"static", "flex"}
     for b in bands.values():
-        assert b["draws"] == 3 and b["failed"] == 0 and b["time_s"][-1] == pytest.approx(WEEK)
+        assert b["draws"] == 3 and b["failed"] == 0 and b["time_s"][-1] == pytest.approx(WEEK) and b["r_hat_max"] > 0
         lo, mid, hi = b["collagen_mg_per_g"]
         assert np.all(lo <= mid) and np.all(mid <= hi) and mid[-1] > 0
     assert bands["flex"]["post_force_max_N"][1][-1] > 0 == bands["static"]["post_force_max_N"][1][-1]

@@ -42,10 +42,13 @@ def calibrated_bands(t_end_s=T_END_S, draws: int = 32, folder=CALIBRATED, progre
     if not (pathlib.Path(folder) / "posterior.nc").is_file():
         return None
     saved = posterior.read_saved(folder)
+    az = posterior.import_arviz()
+    r_hat = float(max(az.rhat(saved.values[..., i]) for i in range(len(saved.names))))
     bands = {}
     for name in BANDED:
         ds = posterior.predict(saved, CASES[name], t_end_s, draws=draws, progress=progress)
         bands[name] = {"time_s": ds["time_s"].values, "draws": int(ds.sizes["draw"]), "failed": int(ds["failed"].values.sum()),
+                       "r_hat_max": r_hat,
                        **{k: tuple(ds[f"{k}_q{q:02d}"].values for q in (5, 50, 95)) for k in KEYS + ("EI_N_m2",)}}
     return bands
 
@@ -110,7 +113,10 @@ def _calibrated_lines(bands: dict | None) -> list[str]:
     out = ["", "## The calibrated model", "",
            f"Dashed lines and shaded bands in Figs 9 and 10: median and 90 % band of the model over {b['draws']} draws of the "
            "shipped posterior of the Engelmayr calibration (`jaxtissue calibrate calibrate/engelmayr2005.toml --posterior`; "
-           "draws simulated at that calibration's resolution, not fitted on the fly). At the end of the run:", "",
+           "draws simulated at that calibration's resolution, not fitted on the fly). "
+           + (f"**Its chains have not converged** (largest R-hat {b['r_hat_max']:.3f} > 1.01): read the bands as indicative. "
+              if b["r_hat_max"] > 1.01 else f"Its chains have converged (largest R-hat {b['r_hat_max']:.3f}). ")
+           + "At the end of the run:", "",
            "| case | DNA (µg/g) | collagen (mg/g) | E_eff (kPa) |", "|---|---|---|---|"]
     for name, b in bands.items():
         cells = [f"{b[k][1][-1]:.4g} [{b[k][0][-1]:.4g}, {b[k][2][-1]:.4g}]" for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa")]
