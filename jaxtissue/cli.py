@@ -488,9 +488,7 @@ def cmd_predict(args) -> int:
            for k in shown}
     summary = {"posterior": str(args.posterior), "regime": args.regime, "t_end_s": args.t_end, "draws": int(ds.sizes["draw"]),
                "failed_draws": int(ds["failed"].values.sum()), "at_t_end": end,
-               "model": dict(zip(("ny", "flex_nx", "beam_segments", "beam_steps_per_cycle", "coupling_interval_s"),
-                                 (saved.model.ny, saved.model.flex_nx, saved.model.beam_segments, saved.model.beam_steps_per_cycle,
-                                  saved.model.coupling_interval_s)))}
+               "model": dataclasses.asdict(saved.model)}
     title = f"{args.regime}" + (f", T = {args.period:g} s, {args.post_displacement:g} mm" if args.regime == "flex" else "") + \
         f": posterior predictive of {summary['draws']} draws (data: condition '{condition}')"
     with io.output_folder(args.out, args.overwrite) as tmp:

@@ -113,14 +113,10 @@ def log_likelihood_t(problem: Problem):
         grad = jnp.where(ok, -(jnp.where(ok, J, 0.0).T @ r0), 0.0)
         return value, grad
 
-    def fwd(t):
-        value, grad = _value_and_grad(t)
-        return value, grad
-
     def bwd(grad, cotangent):
         return (cotangent * grad,)
 
-    log_likelihood.defvjp(fwd, bwd)
+    log_likelihood.defvjp(_value_and_grad, bwd)  # the forward pass keeps the gradient as its residual
     return log_likelihood
 
 
@@ -270,20 +266,26 @@ def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndar
     (..., observations), `batch` draws at a time under vmap."""
     flat = np.asarray(t).reshape(-1, np.shape(t)[-1])
     mean, sd = problem.data()
-    run = _batched_residuals(problem, batch)
-    out = []
-    for b in range(0, len(flat), batch):
-        x = flat[b : b + batch]
-        padded = np.concatenate([x, np.repeat(x[-1:], batch - len(x), axis=0)])
-        out.append(np.asarray(run(jnp.asarray(padded)))[: len(x)])
-        if progress is not None:
-            progress(len(x))
-    return (mean + sd * np.concatenate(out)).reshape(*np.shape(t)[:-1], -1)
+    r = np.concatenate(_in_batches(_batched_residuals(problem), flat, batch, progress))
+    return (mean + sd * r).reshape(*np.shape(t)[:-1], -1)
 
 
 @functools.lru_cache(maxsize=4)
-def _batched_residuals(problem: Problem, batch: int):
+def _batched_residuals(problem: Problem):
     return jax.jit(jax.vmap(problem.residuals))
+
+
+def _in_batches(run, rows: np.ndarray, batch: int, progress=None) -> list:
+    """`run` (jitted, vmapped) over `rows` `batch` at a time, the last batch padded with
+    copies of its last row (one compiled batch shape); the outputs, padding dropped."""
+    out = []
+    for b in range(0, len(rows), batch):
+        x = rows[b : b + batch]
+        padded = np.concatenate([x, np.repeat(x[-1:], batch - len(x), axis=0)])
+        out.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[: len(x)], run(jnp.asarray(padded))))
+        if progress is not None:
+            progress(len(x))
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -474,9 +476,8 @@ def write(cal, result: Posterior, folder) -> None:
     io.atomic_write_text(folder / "report.md", calibration.report(cal) + report(problem, result))
     plots.posterior_pairs(problem.names, result.draws.values, result.draws.diverging, folder / "pairs.png", reference=cal.fit.values)
     plots.posterior_traces(problem.names, result.draws.values, folder / "traces.png")
-    mean, sd = problem.data()
-    flat = result.model.reshape(-1, result.model.shape[-1])
-    y = flat + np.random.default_rng(2).normal(size=flat.shape) * sd
+    y = result.idata.posterior_predictive["y"].values  # the draws' model values plus the measurement noise
+    y = y.reshape(-1, y.shape[-1])
     plots.fit_against_data(problem.observations, cal.model, folder / "fit.png", band=np.quantile(y, [0.05, 0.95], axis=0))
 
 
@@ -561,14 +562,7 @@ def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int 
                      coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options())
         return {k: getattr(r, k) for k in SCALARS}, r.failed
 
-    run = jax.jit(jax.vmap(one))
-    parts = []
-    for b in range(0, len(chosen), batch):
-        x = chosen[b : b + batch]
-        padded = np.concatenate([x, np.repeat(x[-1:], batch - len(x), axis=0)])
-        parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[: len(x)], run(jnp.asarray(padded))))
-        if progress is not None:
-            progress(len(x))
+    parts = _in_batches(jax.jit(jax.vmap(one)), chosen, batch, progress)
     times = save_times(t_end_s, m.coupling_interval_s)
     failed = np.concatenate([p[1] for p in parts])
     data = {}
