@@ -22,12 +22,17 @@ import math
 import os
 import re
 import sys
+import warnings
 
 import numpy as np
 
+from .cache import enable_compilation_cache
 from .grid import DEFAULT_SHAPES
 from .io import InputError
 from .protocol import T_END_S, THREE_WEEKS_S
+
+LONG_RUN_CELLS = 8000
+"""`simulate` shows its progress bar on a terminal only for grids of more cells than this."""
 
 FLAGS = {
     "period_s": "--period",
@@ -101,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--checkpoint-every", type=_grid_size, default=None, metavar="N",
                    help="save the state every N coupling intervals in DIR.checkpoint/ (a killed run continues with --resume DIR)")
     s.add_argument("--resume", metavar="DIR", help="continue the interrupted --checkpoint-every run whose --out was DIR (its settings are reused)")
-    s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
+    s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help=f"progress bar over the run (its program is then not cached; default: on a terminal, for grids of more than {LONG_RUN_CELLS} cells)")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser("cycle", help="one loading cycle of the poroelastic beam, with figures")
@@ -296,7 +301,9 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--grid NY = {ny} must be at least 3")
     grid = Grid(nx=nx, ny=ny)
     io.check_output_folder(args.out, args.overwrite)
-    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    # the bar is fed from inside the run, which keeps its program out of the compilation
+    # cache: by default only for grids where the run outlasts its compilation
+    progress = (sys.stderr.isatty() and nx * ny > LONG_RUN_CELLS) if args.progress is None else args.progress
     options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps)
     resolution = {}
     if getattr(args, "params", None) and not args.grid:  # a fitted file: simulate at the resolution of the fit
@@ -588,6 +595,11 @@ def main(argv=None) -> int:
         hint = f" ({hint})" if hint.startswith("did you mean") else f"; see jaxtissue {args.command} --help"
         print(f"jaxtissue: error: unrecognized arguments: {' '.join(unknown)}{hint}", file=sys.stderr)
         return 2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        enable_compilation_cache()  # a second run of the same command loads its programs
+    for w in caught:
+        print(f"jaxtissue: warning: {w.message}", file=sys.stderr)
     try:
         return args.func(args)
     except InputError as err:

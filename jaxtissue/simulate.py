@@ -87,7 +87,7 @@ class SolverOptions(eqx.Module):
     def controller(self, t0, t1):
         """diffrax step-size controller over [t0, t1]."""
         if self.fixed_steps is None:
-            return ReproducibleSteps(diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s))
+            return ReproducibleSteps(diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s), dt0=self.dt0_s)
         span = t1 - t0
         frac = jnp.geomspace(self.dt0_s / span, 1.0, self.fixed_steps)
         return diffrax.StepTo(ts=t0 + span * jnp.concatenate([jnp.zeros(1), frac]))
@@ -109,7 +109,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
         ROS34PW2(),
         t0=t0,
         t1=t1,
-        dt0=options.dt0_s if options.fixed_steps is None else None,
+        dt0=None,  # the controller's (`ReproducibleSteps.dt0`)
         y0=y0,
         args=args,
         saveat=saveat,

@@ -168,9 +168,14 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
     agree unless an error estimate sits within round-off of a rounding boundary; a
     vmapped batch then also equals the single runs to round-off. The relative change
     of each step, < 1.2e-7, is far below any tolerance.
+
+    `dt0`: the first step, used when `diffeqsolve` is given `dt0=None` (diffeqsolve's
+    own check of a given dt0 against traced t0, t1 is a host callback, which keeps a
+    program out of JAX's persistent compilation cache).
     """
 
     inner: diffrax.PIDController
+    dt0: float | None = None
 
     @property
     def rtol(self):
@@ -185,9 +190,10 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
         return self.inner.norm
 
     def wrap(self, direction):
-        return ReproducibleSteps(self.inner.wrap(direction))
+        return ReproducibleSteps(self.inner.wrap(direction), self.dt0)
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        dt0 = self.dt0 if dt0 is None else dt0
         return self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):

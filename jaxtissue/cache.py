@@ -1,0 +1,67 @@
+"""JAX's persistent compilation cache in a per-user folder (docs/numerics.md,
+"Compilation"): the second run of the same program loads it from disk instead of
+compiling it again. The command line enables it; Python users may call
+`enable_compilation_cache()` themselves.
+
+The folder is `$XDG_CACHE_HOME/jaxtissue` (default `~/.cache/jaxtissue`);
+`JAXTISSUE_NO_CACHE=1` turns it off; a folder set for JAX itself
+(`JAX_COMPILATION_CACHE_DIR`) is used as it is. A folder that cannot be made or written costs a
+warning, never a failure, and so does an unreadable entry (JAX recompiles). Programs
+with host callbacks (progress bars fed from inside a run) are never cached.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import tempfile
+import warnings
+
+import jax
+
+MAX_SIZE_BYTES = 2 * 1024**3
+"""The folder's size limit; least recently used entries go first."""
+
+
+def default_folder() -> pathlib.Path | None:
+    """`$XDG_CACHE_HOME/jaxtissue` (default `~/.cache/jaxtissue`), or None if
+    `JAXTISSUE_NO_CACHE` is set to anything but "" or "0"."""
+    if os.environ.get("JAXTISSUE_NO_CACHE", "") not in ("", "0"):
+        return None
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return pathlib.Path(base) / "jaxtissue"
+
+
+def _writable(folder: pathlib.Path) -> str | None:
+    """None if `folder` exists (or was made) and takes a file, else why not."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
+            pass
+    except OSError as err:
+        return err.strerror or type(err).__name__
+    return None
+
+
+def enable_compilation_cache(folder: str | os.PathLike | None = None) -> pathlib.Path | None:
+    """Use JAX's persistent compilation cache in `folder` (default: `default_folder()`).
+
+    Returns the folder in use, or None if the cache stays off (turned off, or the
+    folder is not writable: then with a warning). Without `folder`, a cache folder
+    already set for JAX (`JAX_COMPILATION_CACHE_DIR`) is kept. Call it before the
+    first compilation: JAX fixes the folder when it first compiles."""
+    if folder is None and jax.config.jax_compilation_cache_dir:  # the user's own (JAX_COMPILATION_CACHE_DIR)
+        return pathlib.Path(jax.config.jax_compilation_cache_dir)
+    path = default_folder() if folder is None else pathlib.Path(folder)
+    if path is None:
+        return None
+    problem = _writable(path)
+    if problem is not None:
+        warnings.warn(f"compilation cache folder {path} is not usable ({problem}); compiling without it "
+                      "(set XDG_CACHE_HOME, or JAXTISSUE_NO_CACHE=1 to silence this)", RuntimeWarning, stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    jax.config.update("jax_compilation_cache_max_size", MAX_SIZE_BYTES)
+    return path
