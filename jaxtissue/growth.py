@@ -69,7 +69,7 @@ class GrowthModel(AbstractStructuredField):
     order) or `"upwind"` (first order). `cell_transport=False` drops the cell flux
     (motility, chemotaxis): for D_c = χ = 0 known before tracing (`has_cell_transport`),
     where it is identically zero. `o2_sweeps`: the O2 solve of `shifted_factor` in 2-D,
-    sweeps of line relaxation or 0 for block elimination (`numerics.line_sweeps`).
+    sweeps of line relaxation or 0 for multigrid (`numerics.line_sweeps`).
     """
 
     coeffs: Coefficients

@@ -8,8 +8,8 @@ The growth right-hand side (docs/model.md §2) couples o to its four neighbours
    2-D) instead of one JVP per unknown.
 2. **Eliminate** c and m pointwise (a Schur complement): what is left is a 5-point
    operator on o alone.
-3. **Solve** it with `numerics.FivePoint` (Thomas in 1-D; line relaxation or block
-   elimination in 2-D), factored once per step and reused by every stage.
+3. **Solve** it with `numerics.FivePoint` (Thomas in 1-D; line relaxation or
+   multigrid in 2-D, O(cells)), factored once per step and reused by every stage.
 
 J̃ drops the O2 diffusivity's dependence on m and the neighbour couplings of c (cell
 motility, chemotaxis): weak or, with the paper's D_c = χ = 0, absent. A W-method's
@@ -84,13 +84,14 @@ class GrowthJacobian(eqx.Module):
             mm=r_m.m,
         )
 
-    def factor(self, a, sweeps: int = 0) -> "ShiftedFactor":
+    def factor(self, a, sweeps: int = 0, cycles: int = 3) -> "ShiftedFactor":
         """Factor `a I − J̃` once; the result solves it for many right-hand sides
-        (2-D: `sweeps` of line relaxation, 0 = block elimination; see `FivePoint.factor`)."""
+        (2-D: `sweeps` of line relaxation, 0 = `cycles` V-cycles of multigrid; see
+        `FivePoint.factor`)."""
         inv_cc = 1.0 / (a - self.cc)
         diag = a - self.oo_diag - self.oc * self.co * inv_cc
         o_op = FivePoint(diag, -self.oo_south, -self.oo_north, -self.oo_west, -self.oo_east)
-        return ShiftedFactor(jac=self, a=a, inv_cc=inv_cc, o_factor=o_op.factor(sweeps))
+        return ShiftedFactor(jac=self, a=a, inv_cc=inv_cc, o_factor=o_op.factor(sweeps, cycles))
 
 
 class ShiftedFactor(eqx.Module):

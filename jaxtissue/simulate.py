@@ -40,8 +40,8 @@ class SolverOptions(eqx.Module):
     """If set: no step control, this many steps growing geometrically from `dt0_s`
     (the same discrete map for every parameter value: for finite-difference checks)."""
     o2_sweeps: int | None = eqx.field(static=True, default=None)
-    """2-D grids: sweeps of line relaxation in each step's O2 solve, 0 for block
-    elimination, None to choose from the grid and the strip's thickness/length
+    """2-D grids: sweeps of line relaxation in each step's O2 solve, 0 for multigrid
+    (3 V-cycles), None to choose from the grid and the strip's thickness/length
     (`numerics.line_sweeps`: 6 on the default 50 × 40 grid, 0 for cells shorter than
     h/3). Fewer sweeps approximate the step's Jacobian more coarsely (see
     `growth_jacobian`): cheaper steps, possibly more of them."""
