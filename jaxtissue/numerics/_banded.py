@@ -81,12 +81,10 @@ class FivePoint(eqx.Module):
         thomas = thomas_factor(self.south, self.diag, self.north)
         if nx == 1 or sweeps > 0:
             return FivePointFactor(op=self, thomas=thomas, sweeps=1 if nx == 1 else sweeps)
-        levels, op = [], self
+        levels, op = [(self, thomas)], self
         while op.diag.shape[0] > 1:
-            sizes = _aggregates(op.diag.shape[0])
-            levels.append((op, thomas_factor(op.south, op.diag, op.north) if levels else thomas))
-            op = op.coarsened(sizes)
-        levels.append((op, thomas_factor(op.south, op.diag, op.north)))
+            op = op.coarsened(_aggregates(op.diag.shape[0]))
+            levels.append((op, thomas_factor(op.south, op.diag, op.north)))
         return FivePointFactor(op=self, thomas=thomas, sweeps=0, levels=tuple(levels), cycles=cycles)
 
     def coarsened(self, sizes: tuple) -> "FivePoint":
@@ -287,8 +285,9 @@ def line_sweeps(nx: int, thickness_over_cell_length: float, target: float = 0.01
     between columns and is smoothest across the thickness, where the lagged coupling
     2D/Δx² meets the smallest transverse rate π²D/h². k sweeps leave ρᵏ. Returns the
     least even k with ρᵏ ≤ `target`, or 0 if that is more than `most` (cells too short
-    for the sweeps to pay: 3 V-cycles cost about 12 sweeps). Even k: the residual error has no negative eigenvalues
-    (symmetric operator), so the effective J̃ errs on the stiff side.
+    for the sweeps to pay: 3 V-cycles cost about 12 sweeps). Even k: the residual
+    error has no negative eigenvalues (symmetric operator), so the effective J̃ errs on
+    the stiff side.
     """
     if nx == 1:
         return 0
