@@ -29,10 +29,12 @@ import numpy as np
 from .cache import enable_compilation_cache
 from .grid import DEFAULT_SHAPES
 from .io import InputError
-from .protocol import T_END_S, THREE_WEEKS_S
+from .limits import MAX_STEPS
+from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S
 
-LONG_RUN_CELLS = 8000
-"""`simulate` shows its progress bar on a terminal only for grids of more cells than this."""
+LONG_RUN_S = 10.0
+"""`simulate` shows its progress bar on a terminal for runs expected to take longer
+than this (`limits.expected_seconds`), after compilation."""
 
 FLAGS = {
     "period_s": "--period",
@@ -49,6 +51,7 @@ FLAGS = {
     "posterior": "--posterior",
     "draws": "--draws",
     "hold_out": "--hold-out",
+    "save": "--save",
 }
 """The library's argument names and the flags that set them: messages from the library
 name arguments in backticks, and the command line shows the flag instead."""
@@ -85,6 +88,13 @@ def _grid_size(text: str) -> int:
     return value
 
 
+def _max_steps(text: str) -> int:
+    value = _grid_size(text)
+    if value > MAX_STEPS:
+        raise argparse.ArgumentTypeError(f"{text} must be at most {MAX_STEPS}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="jaxtissue", description="Differentiable simulator of engineered-tissue formation.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -101,12 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lumping", choices=["dispersive", "paper"], default="dispersive", help="cycle-to-growth coupling rule (default dispersive)")
     _parameter_arguments(s)
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
-    s.add_argument("--max-steps", type=_grid_size, default=4096, metavar="N", help="step limit of each growth solve (default 4096)")
+    s.add_argument("--max-steps", type=_max_steps, default=4096, metavar="N", help=f"step limit of each growth solve (default 4096, at most {MAX_STEPS})")
+    s.add_argument("--save", choices=["intervals", "end"], default="intervals", help="the series at every coupling interval (default) or only at --t-end")
     _output_arguments(s, required=False)
     s.add_argument("--checkpoint-every", type=_grid_size, default=None, metavar="N",
                    help="save the state every N coupling intervals in DIR.checkpoint/ (a killed run continues with --resume DIR)")
     s.add_argument("--resume", metavar="DIR", help="continue the interrupted --checkpoint-every run whose --out was DIR (its settings are reused)")
-    s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help=f"progress bar over the run (its program is then not cached; default: on a terminal, for grids of more than {LONG_RUN_CELLS} cells)")
+    s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help=f"progress bar over the run, with its remaining time (its program is then not cached; default: on a terminal, for runs expected to last over {LONG_RUN_S:g} s)")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser("cycle", help="one loading cycle of the poroelastic beam, with figures")
@@ -281,11 +292,15 @@ def cmd_simulate(args) -> int:
 
     from . import io, plots
     from .grid import Grid
+    from . import limits
+    from .coupling import with_rule_constant
     from .params import Params
     from .protocol import Protocol
     from .simulate import SolverOptions, simulate
     from .studies.checkpoint import simulate_checkpointed
 
+    if args.checkpoint_every is not None and args.save != "intervals":
+        raise InputError("--checkpoint-every saves every interval; drop --save end")
     if args.resume:
         if args.checkpoint_every is not None:
             raise InputError("--resume reuses the interrupted run's --checkpoint-every; drop it")
@@ -301,9 +316,6 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--grid NY = {ny} must be at least 3")
     grid = Grid(nx=nx, ny=ny)
     io.check_output_folder(args.out, args.overwrite)
-    # the bar is fed from inside the run, which keeps its program out of the compilation
-    # cache: by default only for grids where the run outlasts its compilation
-    progress = (sys.stderr.isatty() and nx * ny > LONG_RUN_CELLS) if args.progress is None else args.progress
     options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps)
     resolution = {}
     if getattr(args, "params", None) and not args.grid:  # a fitted file: simulate at the resolution of the fit
@@ -316,11 +328,21 @@ def cmd_simulate(args) -> int:
             resolution = {"beam": fitted.beam(), "coupling_interval_s": fitted.coupling_interval_s}
             print(f"model resolution from {args.params} [model]: grid {grid.nx} x {grid.ny}, beam {fitted.beam_segments} x "
                   f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
+    # the bar is fed from inside the run, which keeps its program out of the compilation
+    # cache: by default only for grids where the run outlasts its compilation
+    if args.progress is None:
+        intervals = limits.check_intervals(args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S))
+        progress = sys.stderr.isatty() and limits.expected_seconds(grid.nx * grid.ny, intervals, args.regime) > LONG_RUN_S
+    else:
+        progress = args.progress
     kept = pathlib.Path(f"{args.out}.checkpoint")
     if kept.exists() and not args.resume:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
+    params, lumping_note = with_rule_constant(params, protocol.lumping)
+    notes = limits.extrapolation(params, protocol, args.t_end)
     if args.checkpoint_every is None:
-        result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress, **resolution)
+        result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress, save=args.save,
+                          **resolution)
     else:
         if not args.resume:
             kept.mkdir(parents=True)
@@ -339,8 +361,9 @@ def cmd_simulate(args) -> int:
         return 1
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_netcdf(result.to_xarray(), tmp / "result.nc")
-        io.write_json(tmp / "summary.json", summary(result, args.regime))
-        io.write_params_toml(params, tmp / "params.toml")
+        io.write_json(tmp / "summary.json", summary(result, args.regime) | {"warnings": notes} |
+                      ({"lumping": {"rule": protocol.lumping, "C": params.lumping_C, "why": lumping_note}} if lumping_note else {}))
+        io.write_params_toml(params, tmp / "params.toml", notes=(lumping_note,) if lumping_note else ())
         plots.profiles(result, tmp / "profiles.png", title=f"{args.regime} culture")
         plots.time_series({args.regime: result}, tmp / "time_series.png")
     if args.checkpoint_every is not None:
@@ -356,7 +379,7 @@ def summary(result, regime: str) -> dict:
     keys = SCALARS
     out = {"regime": regime, "times_s": result.ts}
     out.update({k: getattr(result, k) for k in keys})
-    if float(result.ts[-1]) >= THREE_WEEKS_S:
+    if np.min(np.abs(np.asarray(result.ts) - THREE_WEEKS_S)) < 1e-6:
         i = result.index(THREE_WEEKS_S)
         out["three_weeks"] = {k: float(getattr(result, k)[i]) for k in keys}
     out["solver_steps"] = int(result.num_steps)
@@ -370,8 +393,11 @@ def cmd_cycle(args) -> int:
     from . import io, plots
     from .beam import Beam, BeamGrid, Geometry, Material, loading_cycle
 
+    from .limits import warn_extrapolation
+
     params = load_params(args)
     protocol = _flex_protocol(args)
+    notes = warn_extrapolation(params, protocol)
     if not 0.0 <= args.ecm <= 1.0:
         raise InputError(f"--ecm {args.ecm:g} must be in [0, 1]")
     if args.ny < 3 or args.segments < 4 or args.segments % 2 or args.steps < 8:
@@ -396,7 +422,7 @@ def cmd_cycle(args) -> int:
         "period_s": args.period, "post_displacement_mm": args.post_displacement,
         "hold_fraction": args.hold_fraction, "ecm": args.ecm, "params": params.as_dict(),
         "t_s": cycle.t, "post_displacement_mm_t": 1e3 * cycle.u, "post_force_N_t": cycle.post_force_N,
-        "midspan_deflection_mm_t": 1e3 * cycle.midspan_deflection_m,
+        "midspan_deflection_mm_t": 1e3 * cycle.midspan_deflection_m, "warnings": notes,
     }
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_json(tmp / "summary.json", summary)
@@ -540,6 +566,7 @@ def cmd_sweep(args) -> int:
     if args.resume:
         if not (out / "chunks" / "sweep.json").exists():
             raise InputError(f"--resume {out}: no interrupted sweep there (chunks/sweep.json missing)")
+        io.lock_output(out)
     else:
         io.check_output_folder(out, args.overwrite)
         if out.exists():
@@ -595,11 +622,25 @@ def main(argv=None) -> int:
         hint = f" ({hint})" if hint.startswith("did you mean") else f"; see jaxtissue {args.command} --help"
         print(f"jaxtissue: error: unrecognized arguments: {' '.join(unknown)}{hint}", file=sys.stderr)
         return 2
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
         warnings.simplefilter("always", RuntimeWarning)
         enable_compilation_cache()  # a second run of the same command loads its programs
-    for w in caught:
-        print(f"jaxtissue: warning: {w.message}", file=sys.stderr)
+        warnings.simplefilter("default", RuntimeWarning)
+        try:
+            return _interruptible(_run, args)
+        finally:
+            from .io import release_outputs
+
+            release_outputs()
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"jaxtissue: warning: {message}", file=sys.stderr)
+
+
+def _run(args) -> int:
+    """The command, its errors as one line and an exit code."""
     try:
         return args.func(args)
     except InputError as err:
@@ -617,6 +658,62 @@ def main(argv=None) -> int:
         print(f"jaxtissue: internal error: {type(err).__name__}: {err} (set JAXTISSUE_DEBUG=1 for the traceback)", file=sys.stderr)
         return 1
 
+
+class _Terminated(BaseException):
+    pass
+
+
+def _interruptible(run, args) -> int:
+    """`run(args)` in a worker thread while the main thread waits for signals: a compiled
+    computation does not return to Python until it ends, so SIGINT (exit code 130) and
+    SIGTERM (143) are answered here within a fraction of a second, with one line; the
+    unfinished output folders are removed and the process ends at once."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return run(args)
+    outcome = {}
+
+    def work():
+        outcome["rc"] = run(args)
+
+    def terminate(signum, frame):
+        raise _Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    worker = threading.Thread(target=work, name=f"jaxtissue {args.command}", daemon=True)
+    try:
+        worker.start()
+        while worker.is_alive():
+            worker.join(0.05)
+    except (KeyboardInterrupt, _Terminated) as err:
+        from .io import release_outputs
+
+        name, code = ("SIGINT", 130) if isinstance(err, KeyboardInterrupt) else ("SIGTERM", 143)
+        release_outputs()
+        kept = _kept_checkpoint(args)
+        bars = "tqdm" in sys.modules and len(getattr(sys.modules["tqdm"].tqdm, "_instances", ())) > 0
+        print(f"{chr(10) if bars else ''}jaxtissue: interrupted by {name}; no output was written{kept}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(code)  # the worker is inside a compiled computation: do not wait for it
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return outcome.get("rc", 1)
+
+
+def _kept_checkpoint(args) -> str:
+    """What an interrupted command keeps for `--resume`, as the end of its message."""
+    import pathlib
+
+    out = getattr(args, "out", None) or getattr(args, "resume", None)
+    if not out or args.command not in ("simulate", "sweep"):
+        return ""
+    if args.command == "sweep" and (pathlib.Path(out) / "chunks").is_dir():
+        return f"; the finished chunks are kept: continue with `jaxtissue sweep {args.sweep} --out {out} --resume`"
+    if args.command == "simulate" and pathlib.Path(f"{out}.checkpoint").is_dir():
+        return f"; the checkpoint {out}.checkpoint is kept: continue with `jaxtissue simulate --resume {out}`"
+    return ""
 
 if __name__ == "__main__":
     sys.exit(main())

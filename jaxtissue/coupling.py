@@ -19,11 +19,29 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .beam import Beam, BeamGrid, Geometry, Material
 from .grid import Grid
-from .params import CM_PER_M, Params
+from .params import CM_PER_M, Params, concrete_value
 from .state import State, Transport
+
+
+PAPER_RULE_C = 70.0
+"""The paper's lumping constant, for its literal rule (docs/model.md §5)."""
+
+
+def with_rule_constant(params: Params, lumping: str) -> tuple[Params, str | None]:
+    """`params` with the lumping constant of the rule `lumping`: the paper's rule takes
+    the paper's C = 70 unless `lumping_C` was changed from the dispersive default
+    (docs/model.md §5). Returns the parameters and, when C was switched, why."""
+    default = Params().lumping_C
+    C = concrete_value(params.lumping_C)
+    if lumping != "paper" or C is None or np.ndim(C) or float(C) != default:
+        return params, None
+    why = (f"lumping_C = {PAPER_RULE_C:g}: the paper's rule uses the paper's C (docs/model.md §5), not the dispersive "
+           f"rule's default {default:g}; set lumping_C to choose another")
+    return params.replace(lumping_C=PAPER_RULE_C), why
 
 
 def beam_nodes_x_m(length_m, beam_grid: BeamGrid):

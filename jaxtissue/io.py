@@ -5,12 +5,14 @@ one-line error of every mistake in a user's input."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
 import pathlib
 import shutil
 import tempfile
+import threading
 import tomllib
 
 import numpy as np
@@ -19,6 +21,11 @@ from .params import FIELDS, Params, suggest
 
 class InputError(ValueError):
     """A user's input is wrong; the message is one line naming what and why."""
+
+
+_LOCKS: dict[pathlib.Path, int] = {}  # lock file -> its open descriptor, while this process writes there
+_PARTIAL: set[pathlib.Path] = set()  # temporary output folders and files not yet renamed into place
+_COMMIT = threading.Lock()  # renaming a finished folder into place, or discarding the partial ones
 
 
 def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
@@ -42,10 +49,11 @@ def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
     return doc, text
 
 
-def write_params_toml(params: Params, path, model: dict | None = None) -> None:
+def write_params_toml(params: Params, path, model: dict | None = None, notes: tuple[str, ...] = ()) -> None:
     """A TOML file loadable by `read_params_toml` (and `jaxtissue simulate --params`);
-    `model`: a `[model]` table of the resolution the parameters were fitted at."""
-    lines = ["# jaxtissue model parameters (units: see `jaxtissue params`)", "[parameters]"]
+    `model`: a `[model]` table of the resolution the parameters were fitted at; `notes`:
+    comment lines (e.g. why a value was chosen)."""
+    lines = ["# jaxtissue model parameters (units: see `jaxtissue params`)", *(f"# {n}" for n in notes), "[parameters]"]
     for name, value in params.as_dict().items():
         lines.append(f"{name} = {value!r}  # {FIELDS[name].unit}")
     if model:
@@ -134,15 +142,20 @@ def atomic_write(path, write) -> None:
     """`write(binary file)` into a temporary file in the same folder, then rename."""
     path = pathlib.Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    _PARTIAL.add(pathlib.Path(tmp))
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
         os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
+        with _COMMIT:
+            if pathlib.Path(tmp) in _PARTIAL:  # else discarded by an interruption
+                os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    finally:
+        _PARTIAL.discard(pathlib.Path(tmp))
 
 
 def check_output_folder(out, overwrite: bool) -> pathlib.Path:
@@ -160,7 +173,46 @@ def check_output_folder(out, overwrite: bool) -> pathlib.Path:
         raise InputError(f"`out` {out}: cannot create folder {parent} ({err.strerror})") from None
     if not os.access(parent, os.W_OK):
         raise InputError(f"`out` {out}: cannot write in {parent}")
+    lock_output(out)
     return out
+
+
+def lock_output(out) -> None:
+    """Claim `out` for this process (a lock file beside it, held until `release_outputs`):
+    a second command writing the same folder is an `InputError`, not a mixed result."""
+    out = pathlib.Path(out)
+    lock = out.resolve().parent / f".{out.name}.lock"
+    if lock in _LOCKS:
+        return
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise InputError(f"`out` {out}: another jaxtissue command (pid {holder}) is writing this folder; "
+                         "wait for it or choose another folder") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, str(os.getpid()).encode())
+    _LOCKS[lock] = fd
+
+
+def release_outputs() -> None:
+    """Remove the temporary folders of unfinished outputs and release the locks
+    (`lock_output`): what an interrupted command leaves is what it had before."""
+    with _COMMIT:
+        for tmp in list(_PARTIAL):
+            if tmp.is_dir():
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+        _PARTIAL.clear()
+        for lock, fd in list(_LOCKS.items()):
+            with contextlib.suppress(OSError):
+                os.unlink(lock)
+            os.close(fd)
+        _LOCKS.clear()
 
 
 @contextlib.contextmanager
@@ -169,18 +221,25 @@ def output_folder(out, overwrite: bool = False):
 
     If anything fails, the temporary folder is removed and `out` is untouched."""
     out = check_output_folder(out, overwrite)
+    lock_output(out)
     tmp = pathlib.Path(tempfile.mkdtemp(dir=out.resolve().parent, prefix=f".{out.name}.partial-"))
+    _PARTIAL.add(tmp)
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        _PARTIAL.discard(tmp)
         raise
-    old = None
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        os.replace(out, old)
-    os.replace(tmp, out)
+    with _COMMIT:
+        if tmp not in _PARTIAL:  # discarded by an interruption
+            return
+        old = None
+        if out.exists():
+            old = out.with_name(f".{out.name}.old-{os.getpid()}")
+            os.replace(out, old)
+        os.replace(tmp, out)
+        _PARTIAL.discard(tmp)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
 

@@ -13,8 +13,9 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from . import limits
 from .beam import BeamGrid, loading_cycle
-from .coupling import beam_from_ecm, lumped_transport
+from .coupling import beam_from_ecm, lumped_transport, with_rule_constant
 from .grid import Grid
 from .growth import GrowthModel, has_cell_transport
 from .numerics import ROS34PW2, ReproducibleSteps, line_sweeps, replayed_scan
@@ -66,8 +67,8 @@ class SolverOptions(eqx.Module):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive number")
         for name in ("max_steps", "fixed_steps", "checkpoints"):
             value = getattr(self, name)
-            if value is not None and (not isinstance(value, int) or value < 1):
-                raise ValueError(f"solver option {name} = {value!r} must be a positive integer")
+            if value is not None and (not isinstance(value, int) or not 1 <= value <= limits.MAX_STEPS):
+                raise ValueError(f"solver option {name} = {value!r} must be an integer in [1, {limits.MAX_STEPS}]")
         if self.o2_sweeps is not None and (not isinstance(self.o2_sweeps, int) or self.o2_sweeps < 0):
             raise ValueError(f"solver option o2_sweeps = {self.o2_sweeps!r} must be None or an integer >= 0")
         for name in ("nest_intervals", "store_float32"):
@@ -200,7 +201,17 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
                 y1, out = growth(theta, y, k, transport)
                 return y1, (cycle, out)
 
-            final, (cycles, out) = jax.lax.scan(interval, y0, jnp.arange(n_intervals))
+            def skipped(y, k):  # after a failure: the run's status is already decided
+                shapes = jax.eval_shape(interval, y, k)[1]
+                return y, jtu.tree_map(lambda s: jnp.full(s.shape, True if s.dtype == bool else (0 if jnp.issubdtype(s.dtype, jnp.integer) else jnp.nan), s.dtype), shapes)
+
+            def step(carry, k):
+                y, dead = carry
+                y1, (cycle, out) = jax.lax.cond(dead, skipped, interval, y, k)
+                return (y1, dead | cycle["failed"] | (out["code"] != 0)), (cycle, out)
+
+            # a run stops at its first failure (a loading cycle or growth solve)
+            (final, _), (cycles, out) = jax.lax.scan(step, (y0, jnp.asarray(False)), jnp.arange(n_intervals))
         start = observe(y0, params, grid)
         series = {k: jnp.concatenate([start[k][None], v]) for k, v in out["series"].items()}
         _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
@@ -281,6 +292,12 @@ def simulate(
 
     **Returns:** a `Result`. Jit-able (close over the static arguments) and
     differentiable with `jax.grad` / `jax.vmap` over `params` and the protocol's floats.
+
+    The paper's lumping rule takes the paper's C = 70 unless `params.lumping_C` differs
+    from the dispersive default (`coupling.with_rule_constant`). Concrete values outside
+    the range the model and data support give an `ExtrapolationWarning`; a run of more
+    than `limits.MAX_INTERVALS` intervals, or one whose memory exceeds the machine's, is
+    a `limits.ResourceError` (docs/model.md §10).
     """
     protocol = Protocol.static() if protocol is None else protocol
     if not isinstance(params, Params):
@@ -302,6 +319,12 @@ def simulate(
                          f"or 3 weeks ({THREE_WEEKS_S:g} s)")
     if save not in ("intervals", "end"):
         raise ValueError(f"save = {save!r}; allowed: 'intervals', 'end'")
+    need = limits.estimate(grid.nx * grid.ny, t_end_s - t_start_s, coupling_interval_s, save_series=save == "intervals",
+                           regime=protocol.regime)
+    limits.check_memory(need, f"a {grid.nx} x {grid.ny} {protocol.regime} run of {need.intervals} intervals",
+                        "a coarser `grid`" + (", or `save` end (no series)" if save == "intervals" and protocol.regime == "static" else ""))
+    params, _ = with_rule_constant(params, protocol.lumping)
+    limits.warn_extrapolation(params, protocol, t_end_s)
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
     cell_transport = has_cell_transport(params)  # known before the floats become traced
     if options.o2_sweeps is None:

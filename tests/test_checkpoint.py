@@ -40,16 +40,19 @@ def test_killed_run_resumes_to_the_same_bits(tmp_path):
     out = tmp_path / "run"
     kept = pathlib.Path(f"{out}.checkpoint")
     cmd = [sys.executable, "-m", "jaxtissue.cli", *RUN, "--out", str(out)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.time() + 300
     while not (kept / "segment_0001.npz").exists():
-        assert proc.poll() is None and time.time() < deadline, "the run ended before it could be killed"
+        assert proc.poll() is None and time.time() < deadline, "the run ended before it could be stopped"
         time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert not out.exists()
+    os.killpg(proc.pid, signal.SIGTERM)  # as a batch scheduler ends a job: exit 143, the checkpoint kept
+    assert proc.wait(timeout=30) == 143
+    assert proc.stderr.read().strip().splitlines()[-1] == (
+        f"jaxtissue: interrupted by SIGTERM; no output was written; the checkpoint {out}.checkpoint is kept: "
+        f"continue with `jaxtissue simulate --resume {out}`")
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["ref", "run.checkpoint"]
     done = sorted(p.name for p in kept.glob("segment_*.npz"))
-    assert 2 <= len(done) < 6
+    assert 2 <= len(done) < 6 and not list(kept.glob(".*"))  # no partial segment file
 
     assert main(["simulate", "--out", str(out)]) == 2  # a fresh run does not clobber the kept one
     assert main(["simulate", "--resume", str(out), "--no-progress"]) == 0

@@ -165,6 +165,7 @@ def _check_reproduction(rep):
     report = (rep / "report.md").read_text()
     assert "Engelmayr" in report
     assert "values at t = 40000 s (the run ends before 3 weeks)" in report and "3-week values" not in report
+    assert "The paper's literal rule (signed mean velocity over one cycle from rest, C = 70)" in report
 
 
 def test_reproduction_on_small_grids(tmp_path):

@@ -35,6 +35,9 @@ def test_step_limit_time_reached_is_the_last_valid_save():
 def test_beam_non_convergence_is_reported(tmp_path, capsys):
     r = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 1e5, jt.Grid(2, 8), beam=BeamGrid(8, 8))
     assert r.status == jt.RESULTS.beam_failed and float(r.t_reached_s) == 0.0
+    # the run stops at its first failure: the growth steps are the first interval's alone
+    first = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 8))
+    assert first.status == jt.RESULTS.beam_failed and int(r.num_steps) == int(first.num_steps) > 0
     assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle; the run is valid up to t = 0 s")
     out = tmp_path / "c"
     assert main(["cycle", "--post-displacement", "24", "--steps", "8", "--segments", "8", "--ny", "8", "--out", str(out)]) == 1

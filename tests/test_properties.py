@@ -7,6 +7,8 @@ JAXTISSUE_FUZZ=long for the longer profile."""
 
 import math
 import os
+import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +17,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import jaxtissue as jt
+from jaxtissue import limits
 from jaxtissue.cli import main
 from jaxtissue.params import FIELDS
 from jaxtissue.result import BOUNDS_TOL
@@ -144,3 +147,42 @@ def test_garbage_measurement_tables_are_one_line_errors(tmp_path, capsys, body):
     err = capsys.readouterr().err
     assert code == 2, err
     assert err.count("\n") == 1 and "Traceback" not in err and "data.csv" in err
+
+
+class _Compiling(Exception):
+    """Raised in place of the compiled run: the checks before it have passed."""
+
+
+def _stub_run(*args, **kwargs):
+    raise _Compiling
+
+
+extreme = st.floats(-15, 15).map(lambda e: 10.0**e)
+
+
+@settings(settings.get_profile(PROFILE), max_examples=200 if LONG else 30)
+@given(regime=st.sampled_from(["static", "flex"]), t_end=extreme, nx=st.integers(0, 9).map(lambda e: 10**e),
+       ny=st.integers(0, 9).map(lambda e: 3 * 10**e), period=extreme, displacement=st.floats(0, 24.99))
+def test_extreme_but_well_formed_runs_are_refused_in_one_line_or_reach_their_run(tmp_path, capsys, monkeypatch, regime, t_end, nx, ny,
+                                                                                 period, displacement):
+    """Huge and tiny times, grids, periods, displacements: within seconds, either one
+    line and exit code 2 (too many intervals, too much memory) or the checks pass and
+    the run starts (stubbed here: the runs themselves are the tests above and in
+    test_limits.py)."""
+    monkeypatch.setattr(sys.modules["jaxtissue.simulate"], "_simulate", _stub_run)
+    argv = ["simulate", "--regime", regime, "--t-end", repr(t_end), "--grid", str(nx), str(ny), "--no-progress",
+            "--out", str(tmp_path / "o")]
+    if regime == "flex":
+        argv += ["--period", repr(period), "--post-displacement", repr(displacement)]
+    start = time.perf_counter()
+    code = _exit_code(argv)
+    err = capsys.readouterr().err
+    assert time.perf_counter() - start < 30 and "Traceback" not in err
+    errors = [line for line in err.splitlines() if not line.startswith("jaxtissue: warning: ")]
+    assert len(errors) == 1, err
+    if code == 2:
+        assert errors[0].startswith("jaxtissue: error: ") and ("coupling intervals" in err or "GiB of memory" in err), err
+    else:
+        assert code == 1 and "_Compiling" in errors[0], err
+        assert nx * ny * 1000 < limits.available_bytes() and t_end / 2e4 <= limits.MAX_INTERVALS
+    assert not (tmp_path / "o").exists()

@@ -161,7 +161,7 @@ def test_resume_refuses_a_different_sweep(static_file, tmp_path):
     ("[parameters]\nk_m0 = { logspace = [0.0, 3e-7], n = 3 }\n", "needs positive values"),
     ("[parameters]\no_m = { values = [1.5] }\n", "o_m = 1.5 must be in"),
     ("chunks = 3\n[parameters]\nk_m0 = { values = [1e-7] }\n", "unknown key 'chunks'; did you mean 'chunk'?"),
-    ("design = \"lhs\"\n[parameters]\nk_m0 = { range = [1e-7, 3e-7] }\n", "samples = None must be a positive integer"),
+    ("design = \"lhs\"\n[parameters]\nk_m0 = { range = [1e-7, 3e-7] }\n", "samples = None must be an integer in [1, 10000000]"),
 ])
 def test_bad_sweep_files_give_one_line_and_exit_2(tmp_path, capsys, text, message):
     path = tmp_path / "bad.toml"

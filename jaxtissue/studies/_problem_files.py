@@ -12,6 +12,7 @@ import numpy as np
 from ..beam import BeamGrid
 from ..grid import Grid
 from ..io import InputError, number
+from ..limits import MAX_SWEEP_POINTS
 from ..params import suggest
 from ..simulate import SolverOptions
 
@@ -112,8 +113,8 @@ def grid_axis(name, spec, where):
     if not (isinstance(ends, list) and len(ends) == 2):
         raise InputError(f"{where}: {name} {kind} = {ends!r} must be [first, last]")
     a, b = (number(v, f"{where}: {name} {kind} end") for v in ends)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise InputError(f"{where}: {name} n = {n!r} must be a positive integer")
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_SWEEP_POINTS:
+        raise InputError(f"{where}: {name} n = {n!r} must be an integer in [1, {MAX_SWEEP_POINTS}]")
     if kind == "logspace":
         if a <= 0 or b <= 0:
             raise InputError(f"{where}: {name} logspace = [{a:g}, {b:g}] needs positive values (they are the values, not exponents)")

@@ -35,6 +35,7 @@ import optimistix as optx
 from .. import io, plots
 from ..data import DataError, Observation, read_measurements
 from ..io import InputError, params_from_table, read_toml
+from ..limits import check_study
 from ..numerics import LevenbergMarquardt
 from ..params import FIELDS, Params, suggest
 from ..protocol import Protocol, save_times
@@ -487,6 +488,10 @@ def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = Fal
 
     from tqdm.auto import tqdm
 
+    m = problem.model
+    t_end = max([o.time_s for o in problem.observations] + [0.0])
+    check_study("the calibration", m.grid("flex"), t_end, m.coupling_interval_s, problem.fit.starts * (1 + len(problem.free)),
+                reverse=False)  # its Jacobians are forward mode: a tangent per free parameter
     seconds = {}
     t0 = time.perf_counter()
     with tqdm(total=problem.fit.starts, desc="fit: starts", unit="start", disable=not progress) as bar:

@@ -36,6 +36,7 @@ import optax
 
 from .. import io, plots
 from ..io import InputError, number, params_from_table, read_params_toml, read_toml
+from ..limits import SUPPORTED, check_study
 from ..params import Params, suggest
 from ..protocol import LUMPING_RULES, THREE_WEEKS_S, Protocol, interval_bounds
 from ..simulate import simulate
@@ -382,6 +383,9 @@ def run(design: Design, progress: bool = False) -> Study:
     `InfeasibleError` if no grid point meets the limits."""
     from tqdm.auto import tqdm
 
+    m = design.model
+    draws = 1 if design.uncertainty is None else max(design.uncertainty.draws, design.uncertainty.check_draws)
+    check_study("the optimisation", m.grid("flex"), design.t_end_s, m.coupling_interval_s, draws, reverse=design.autodiff == "reverse")
     base_theta = design.constant(BASELINE["period_s"], BASELINE["post_displacement_mm"])
     J0, V0, _ = jax.jit(design.evaluate)(base_theta)
     with tqdm(total=design.settings.grid_points**2, desc="grid", unit="protocol", disable=not progress) as bar:
@@ -459,8 +463,21 @@ def summary(study: Study) -> dict:
             "gradient_to_optimum": o.seconds_to_best, "gradient_total": o.seconds, "gradient_compile": o.compile_seconds,
             "grid_total": g.seconds, "grid_compile": g.compile_seconds,
         },
+        "outside_supported": outside_supported(optimum_protocol(study)),
         **({"robust": study.robust} if study.robust is not None else {}),
     }
+
+
+def outside_supported(protocol: dict) -> dict:
+    """The optimum's coordinates outside the range the model and data support
+    (`limits.SUPPORTED`): {name: [values outside]}."""
+    out = {}
+    for name in ("period_s", "post_displacement_mm"):
+        lo, hi = SUPPORTED[name].low, SUPPORTED[name].high
+        values = np.atleast_1d(protocol[name])
+        if np.any((values < lo) | (values > hi)):
+            out[name] = [float(v) for v in values if not lo <= v <= hi]
+    return out
 
 
 def report(study: Study) -> str:
@@ -498,6 +515,7 @@ def report(study: Study) -> str:
     lines.append(f"The optimum is {better} the best grid point and changes the objective by {100 * gain:+.1f} % against the paper's protocol.")
     if d.stages > 1:
         lines.append(_schedule_diagnosis(study, s))
+    lines.append(_support_line(s["outside_supported"]))
     if study.robust is not None:
         lines += _robust_lines(study.robust, d)
     lines += [
@@ -509,6 +527,15 @@ def report(study: Study) -> str:
         "protocols with the optimisation paths), history.png" + (", schedule.png" if d.stages > 1 else "") + ".", "",
     ]
     return "\n".join(lines)
+
+
+def _support_line(outside: dict) -> str:
+    ranges = ", ".join(f"{n} {SUPPORTED[n].low:g}–{SUPPORTED[n].high:g} {SUPPORTED[n].unit}" for n in ("period_s", "post_displacement_mm"))
+    if not outside:
+        return f"The optimum lies inside the range the model and data support ({ranges})."
+    return (f"The optimum lies **outside** the range the model and data support ({ranges}): "
+            + ", ".join(f"{n} = {', '.join(f'{v:.3g}' for v in vs)}" for n, vs in outside.items())
+            + "; there the model extrapolates (docs/model.md §10).")
 
 
 def _robust_lines(r: dict, d: Design) -> list[str]:
@@ -529,7 +556,7 @@ def _robust_lines(r: dict, d: Design) -> list[str]:
     out += ["", f"The point-estimate protocol breaks a limit for {100 * (1 - pe['constraint_probability']):.0f} % of plausible tissues."]
     proto = r["robust_optimum"]["protocol"]
     if d.stages == 1:
-        inside = 0.5 <= proto["period_s"] <= 2.0 and 2.5 <= proto["post_displacement_mm"] <= 10.0
+        inside = not outside_supported(proto)
         out.append(f"The robust optimum lies {'inside' if inside else '**outside**'} the calibrated conditions (0.5–2 s periods, "
                    "2.5–10 mm): " + ("the data cover it." if inside else "the model extrapolates there; its predictive spread is "
                                      "the posterior's only, not the model's error."))

@@ -53,9 +53,10 @@ def calibrated_bands(t_end_s=T_END_S, draws: int = 32, folder=CALIBRATED, progre
     return bands
 
 
-def run_cases(params, t_end_s=T_END_S, paper_rule_C=70.0, progress=False, log=print, flex_grid=None, beam=BeamGrid()):
-    """Every case of `CASES`, and flexure with the paper's rule (C = `paper_rule_C`);
-    flexure on `flex_grid` (default `Grid.default("flex")`) with the beam `beam`."""
+def run_cases(params, t_end_s=T_END_S, progress=False, log=print, flex_grid=None, beam=BeamGrid()):
+    """Every case of `CASES`, and flexure with the paper's rule (with the paper's C = 70
+    unless `params` chose another, `coupling.with_rule_constant`); flexure on
+    `flex_grid` (default `Grid.default("flex")`) with the beam `beam`."""
     results = {}
     flex_kw = dict(grid=flex_grid, beam=beam, progress=progress)
     for name, protocol in CASES.items():
@@ -63,7 +64,7 @@ def run_cases(params, t_end_s=T_END_S, paper_rule_C=70.0, progress=False, log=pr
         kw = dict(progress=progress) if protocol.regime == "static" else flex_kw
         results[name] = simulate(params, protocol, t_end_s=t_end_s, **kw)
     log("running flex with the paper's lumping rule ...")
-    results["flex_paper_rule"] = simulate(params.replace(lumping_C=paper_rule_C), Protocol.flex(lumping="paper"), t_end_s=t_end_s, **flex_kw)
+    results["flex_paper_rule"] = simulate(params, Protocol.flex(lumping="paper"), t_end_s=t_end_s, **flex_kw)
     return results
 
 

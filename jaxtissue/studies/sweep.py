@@ -16,15 +16,18 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import pathlib
 
 import equinox as eqx
 import jax
 import numpy as np
 
+from .. import limits
 from ..beam import BeamGrid
 from ..grid import Grid
 from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
+from ..limits import MAX_SWEEP_POINTS
 from ..params import FIELDS, Params, suggest
 from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
 from ..result import OUTPUTS, SCALARS
@@ -141,12 +144,15 @@ def read_sweep(path) -> Sweep:
     design = doc.get("design", "grid")
     if design == "grid":
         axes = {n: grid_axis(n, specs[n], f"{where}: [parameters]") for n in names}
+        size = math.prod(len(a) for a in axes.values())
+        if size > MAX_SWEEP_POINTS:
+            raise InputError(f"{where}: the grid of [parameters] has {size:.3g} points; a sweep may have at most {MAX_SWEEP_POINTS}")
         mesh = np.meshgrid(*axes.values(), indexing="ij")
         points = np.stack([m.ravel() for m in mesh], axis=1)
     elif design in ("lhs", "sobol"):
         samples = doc.get("samples")
-        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-            raise InputError(f"{where}: samples = {samples!r} must be a positive integer with design = {design!r}")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_SWEEP_POINTS:
+            raise InputError(f"{where}: samples = {samples!r} must be an integer in [1, {MAX_SWEEP_POINTS}] with design = {design!r}")
         seed = doc.get("seed", 0)
         axes = None
         points = space_filling(names, specs, design, samples, seed, f"{where}: [parameters]")
@@ -245,6 +251,10 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     fn, n_dev = batched(sweep)
     width = sweep.chunk  # the chunk files do not depend on the device count ...
     batch = -(-width // n_dev) * n_dev  # ... the batch is padded to a multiple of it
+    need = limits.estimate(sweep.grid.nx * sweep.grid.ny, sweep.t_end_s, sweep.coupling_interval_s,
+                           save_series=sweep.outputs != "final", batch=batch, regime=sweep.protocol.regime)
+    limits.check_memory(need, f"a chunk of {batch} runs on the {sweep.grid.nx} x {sweep.grid.ny} grid",
+                        "a smaller `chunk` in the sweep file, `outputs = \"final\"` or a coarser grid")
     starts = range(0, sweep.size, width)
     todo = [s for s in starts if not (resume and (chunks / f"{s:08d}.npz").exists())]
     with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not progress) as bar:
