@@ -52,6 +52,8 @@ FLAGS = {
     "draws": "--draws",
     "hold_out": "--hold-out",
     "save": "--save",
+    "num_processes": "--num-processes",
+    "process_id": "--process-id",
 }
 """The library's argument names and the flags that set them: messages from the library
 name arguments in backticks, and the command line shows the flag instead."""
@@ -168,6 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--resume", action="store_true", help="continue an interrupted sweep in DIR, skipping finished chunks")
     w.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty DIR")
     w.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
+    w.add_argument("--distributed", nargs="?", const="", metavar="HOST:PORT",
+                   help="one of several processes sharing the sweep (jax.distributed; the coordinator's address, or detected "
+                        "from SLURM, Open MPI, ... or $JAX_COORDINATOR_ADDRESS); process 0 writes DIR")
+    w.add_argument("--num-processes", type=_grid_size, default=None, metavar="N", help="with --distributed: the number of processes")
+    w.add_argument("--process-id", type=int, default=None, metavar="I", help="with --distributed: this process, 0 to N-1")
     w.set_defaults(func=cmd_sweep)
 
     n = sub.add_parser("sensitivity", help="normalised sensitivities d ln(output)/d ln(parameter) at 3 weeks")
@@ -563,19 +570,26 @@ def cmd_sweep(args) -> int:
     out = pathlib.Path(args.out)
     if args.resume and args.overwrite:
         raise InputError("--resume and --overwrite exclude each other")
-    if args.resume:
-        if not (out / "chunks" / "sweep.json").exists():
-            raise InputError(f"--resume {out}: no interrupted sweep there (chunks/sweep.json missing)")
-        io.lock_output(out)
-    else:
-        io.check_output_folder(out, args.overwrite)
-        if out.exists():
-            import shutil
+    if args.distributed is None and (args.num_processes is not None or args.process_id is not None):
+        raise InputError("--num-processes and --process-id go with --distributed")
+    if args.distributed is not None:
+        sweep.join_processes(args.distributed or None, args.num_processes, args.process_id)
+    if sweep.is_writer():  # (of several processes, process 0 checks and writes the folder)
+        if args.resume:
+            if not (out / "chunks" / "sweep.json").exists():
+                raise InputError(f"--resume {out}: no interrupted sweep there (chunks/sweep.json missing)")
+            io.lock_output(out)
+        else:
+            io.check_output_folder(out, args.overwrite)
+            if out.exists():
+                import shutil
 
-            shutil.rmtree(out)
+                shutil.rmtree(out)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     ds = sweep.run(definition, out, resume=args.resume, progress=progress)
     failures = int(ds.attrs["failures"])
+    if not sweep.is_writer():
+        return 0
     io.write_json(out / "summary.json", {
         "size": definition.size, "failures": failures, "names": list(definition.names), "regime": definition.protocol.regime,
         "t_end_s": definition.t_end_s, "failed_points": definition.points[np.asarray(ds["failed"]).ravel()].tolist(),

@@ -74,21 +74,41 @@ def test_four_host_devices_give_the_same_values(static_file, tmp_path):
         np.testing.assert_allclose(four[k].values, one[k].values, rtol=1e-7)  # round-off differs with the per-device batch; far below the solver tolerance
 
 
-def test_cli_sweep_uses_every_core(static_file, tmp_path):
-    """`jaxtissue sweep` splits the CPU into one device per core before JAX starts (a
-    subprocess: in this one JAX has started), with the same values."""
+def test_two_processes_share_a_sweep_with_one_device_per_core(static_file, tmp_path):
+    """`jaxtissue sweep --distributed` in two local processes (jax.distributed, CPU
+    collectives over gloo), each of which splits its CPU into one device per core before
+    JAX starts: the chunks run over all four devices and process 0 writes what one
+    process computes."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "two"
     code = (
-        "import os, jax; from jaxtissue.cli import main; "
-        f"assert main(['sweep', {str(static_file)!r}, '--out', {str(tmp_path / 'cores')!r}]) == 0; "
-        "assert len(jax.devices()) == os.cpu_count(), (jax.devices(), os.cpu_count())"
+        "import os, sys, jax; from jaxtissue.cli import main; "
+        f"code = main(['sweep', {str(static_file)!r}, '--out', {str(out)!r}, '--distributed', 'localhost:{port}', "
+        "'--num-processes', '2', '--process-id', sys.argv[1]]); "
+        "assert code == 0, code; "
+        "assert len(jax.local_devices()) == os.cpu_count() and len(jax.devices()) == 2 * os.cpu_count(), jax.devices()"
     )
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(i)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for i in (0, 1)]
+    try:
+        outputs = [proc.communicate(timeout=600) for proc in procs]
+    finally:
+        for proc in procs:
+            proc.kill()
+    for proc, (stdout, stderr) in zip(procs, outputs):
+        assert proc.returncode == 0, stderr[-2000:]
+    assert "12 parameter sets, 0 failed" in outputs[0][0] and "parameter sets" not in outputs[1][0]  # process 0 reports and writes
     one = sw.run(sw.read_sweep(static_file), tmp_path / "one")
     assert not sw.use_all_cores()  # JAX has started in this process: a no-op
-    cores = xr.load_dataset(tmp_path / "cores" / "sweep.nc")
-    np.testing.assert_allclose(cores["collagen_mg_per_g"].values, one["collagen_mg_per_g"].values, rtol=1e-7)
+    two = xr.load_dataset(out / "sweep.nc")
+    for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa"):
+        np.testing.assert_allclose(two[k].values, one[k].values, rtol=1e-12)
+    assert sorted(p.name for p in (out / "chunks").iterdir()) == ["00000000.npz", "00000004.npz", "00000008.npz", "sweep.json"]
 
 
 def test_space_filling_designs(tmp_path):

@@ -208,6 +208,24 @@ def use_all_cores() -> bool:
     return True
 
 
+def join_processes(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
+    """Join a sweep shared by several processes (`jax.distributed.initialize`; CPU
+    collectives over gloo): every process runs every chunk on its share of the devices,
+    process 0 writes the files. Arguments left None are detected from the cluster
+    (SLURM, Open MPI, ...) or `$JAX_COORDINATOR_ADDRESS`; a mistake is an `InputError`."""
+    if num_processes is not None and process_id is not None and not 0 <= process_id < num_processes:
+        raise InputError(f"`process_id` = {process_id} must be in [0, {num_processes - 1}]")
+    try:
+        jax.distributed.initialize(coordinator, num_processes, process_id)
+    except (ValueError, RuntimeError) as err:
+        raise InputError(f"jax.distributed: {str(err).splitlines()[0]}") from None
+
+
+def is_writer() -> bool:
+    """Whether this process writes a sweep's files (the only one, or process 0)."""
+    return jax.process_index() == 0
+
+
 def batched(sweep: Sweep):
     """A jitted, vmapped run of a chunk of parameter sets; the chunk's batch axis is
     sharded over `jax.devices()`. Returns (function, devices); the chunk length must be
@@ -240,14 +258,16 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
 
     out = pathlib.Path(out)
     chunks = out / "chunks"
-    chunks.mkdir(parents=True, exist_ok=True)
     manifest = chunks / "sweep.json"
     stamp = {"fingerprint": _fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
-    if manifest.exists():
-        if json.loads(manifest.read_text()) != stamp:
-            raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
-    else:
-        atomic_write_text(manifest, json.dumps(stamp))
+    writer = is_writer()
+    if writer:
+        chunks.mkdir(parents=True, exist_ok=True)
+        if manifest.exists():
+            if json.loads(manifest.read_text()) != stamp:
+                raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
+        else:
+            atomic_write_text(manifest, json.dumps(stamp))
     fn, n_dev = batched(sweep)
     width = sweep.chunk  # the chunk files do not depend on the device count ...
     batch = -(-width // n_dev) * n_dev  # ... the batch is padded to a multiple of it
@@ -256,19 +276,28 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     limits.check_memory(need, f"a chunk of {batch} runs on the {sweep.grid.nx} x {sweep.grid.ny} grid",
                         "a smaller `chunk` in the sweep file, `outputs = \"final\"` or a coarser grid")
     starts = range(0, sweep.size, width)
-    todo = [s for s in starts if not (resume and (chunks / f"{s:08d}.npz").exists())]
-    with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not progress) as bar:
+    done = np.array([resume and (chunks / f"{s:08d}.npz").exists() for s in starts])
+    if jax.process_count() > 1:  # every process runs the same chunks: process 0's view of the folder
+        from jax.experimental import multihost_utils
+
+        done = np.asarray(multihost_utils.broadcast_one_to_all(done))
+    todo = [s for s, d in zip(starts, done) if not d]
+    computed = {}
+    with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not (progress and writer)) as bar:
         for s in todo:
             values = sweep.points[s : s + width]
             pad = batch - values.shape[0]
             result = fn(np.concatenate([values, np.repeat(values[-1:], pad, axis=0)]))
             result = {k: v[: values.shape[0]] for k, v in result.items()}
-            atomic_write(chunks / f"{s:08d}.npz", lambda f, result=result: np.savez(f, **result))
+            if writer:
+                atomic_write(chunks / f"{s:08d}.npz", lambda f, result=result: np.savez(f, **result))
+            computed[s] = result
             bar.update(1)
-    parts = [dict(np.load(chunks / f"{s:08d}.npz")) for s in starts]
+    parts = [computed[s] if s in computed else dict(np.load(chunks / f"{s:08d}.npz")) for s in starts]
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     ds = to_dataset(sweep, merged)
-    write_netcdf(ds, out / "sweep.nc")
+    if writer:
+        write_netcdf(ds, out / "sweep.nc")
     return ds
 
 
