@@ -52,6 +52,7 @@ FLAGS = {
     "draws": "--draws",
     "hold_out": "--hold-out",
     "save": "--save",
+    "dask": "--dask",
     "num_processes": "--num-processes",
     "process_id": "--process-id",
 }
@@ -170,6 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--resume", action="store_true", help="continue an interrupted sweep in DIR, skipping finished chunks")
     w.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty DIR")
     w.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
+    w.add_argument("--dask", metavar="CLUSTER", help="run the chunks as tasks on a Dask cluster: local:N (N worker processes "
+                   "here) or a scheduler address (tcp://host:8786); results into DIR/sweep.zarr as they finish")
     w.add_argument("--distributed", nargs="?", const="", metavar="HOST:PORT",
                    help="one of several processes sharing the sweep (jax.distributed; the coordinator's address, or detected "
                         "from SLURM, Open MPI, ... or $JAX_COORDINATOR_ADDRESS); process 0 writes DIR")
@@ -565,19 +568,27 @@ def cmd_sweep(args) -> int:
     from . import io
     from .studies import sweep
 
-    sweep.use_all_cores()  # before anything starts JAX's backend
+    if args.dask is None:
+        sweep.use_all_cores()  # before anything starts JAX's backend (Dask: the worker processes share the cores)
     definition = sweep.read_sweep(args.sweep)
     out = pathlib.Path(args.out)
     if args.resume and args.overwrite:
         raise InputError("--resume and --overwrite exclude each other")
+    if args.dask is not None and args.distributed is not None:
+        raise InputError("--dask and --distributed exclude each other")
+    if args.dask is not None:
+        from .studies.sweep_dask import check_cluster
+
+        check_cluster(args.dask)
     if args.distributed is None and (args.num_processes is not None or args.process_id is not None):
         raise InputError("--num-processes and --process-id go with --distributed")
     if args.distributed is not None:
         sweep.join_processes(args.distributed or None, args.num_processes, args.process_id)
     if sweep.is_writer():  # (of several processes, process 0 checks and writes the folder)
         if args.resume:
-            if not (out / "chunks" / "sweep.json").exists():
-                raise InputError(f"--resume {out}: no interrupted sweep there (chunks/sweep.json missing)")
+            kept = out / "sweep.zarr" if args.dask else out / "chunks" / "sweep.json"
+            if not kept.exists():
+                raise InputError(f"--resume {out}: no interrupted {'--dask ' if args.dask else ''}sweep there ({kept.relative_to(out)} missing)")
             io.lock_output(out)
         else:
             io.check_output_folder(out, args.overwrite)
@@ -586,7 +597,12 @@ def cmd_sweep(args) -> int:
 
                 shutil.rmtree(out)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
-    ds = sweep.run(definition, out, resume=args.resume, progress=progress)
+    if args.dask is not None:
+        from .studies import sweep_dask
+
+        ds = sweep_dask.run(definition, out, args.dask, resume=args.resume, progress=progress)
+    else:
+        ds = sweep.run(definition, out, resume=args.resume, progress=progress)
     failures = int(ds.attrs["failures"])
     if not sweep.is_writer():
         return 0
@@ -723,6 +739,9 @@ def _kept_checkpoint(args) -> str:
     out = getattr(args, "out", None) or getattr(args, "resume", None)
     if not out or args.command not in ("simulate", "sweep"):
         return ""
+    if args.command == "sweep" and (pathlib.Path(out) / "sweep.zarr").is_dir():
+        return (f"; the finished chunks are kept in {out}/sweep.zarr: continue with "
+                f"`jaxtissue sweep {args.sweep} --out {out} --dask {args.dask} --resume`")
     if args.command == "sweep" and (pathlib.Path(out) / "chunks").is_dir():
         return f"; the finished chunks are kept: continue with `jaxtissue sweep {args.sweep} --out {out} --resume`"
     if args.command == "simulate" and pathlib.Path(f"{out}.checkpoint").is_dir():

@@ -1,7 +1,7 @@
 """Workflows on top of `simulate`, one module each: `calibration` (fits, Laplace
 approximation, profile likelihoods), `posterior` (Bayesian calibration with the
 `priors` of the free parameters, predictive bands), `optimization` (protocol design, with the `objectives` and limits it may use), `sweep` (batch
-runs), `sensitivity` (d ln output / d ln parameter), `reproduce` (the paper's study)
+runs; `sweep_dask` on a Dask cluster), `sensitivity` (d ln output / d ln parameter), `reproduce` (the paper's study)
 and `checkpoint` (runs in saved segments). Their problem files share one reader
 (`_problem_files`)."""
 
@@ -15,4 +15,5 @@ from . import (
     reproduce as reproduce,
     sensitivity as sensitivity,
     sweep as sweep,
+    sweep_dask as sweep_dask,
 )

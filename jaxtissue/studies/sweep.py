@@ -226,10 +226,21 @@ def is_writer() -> bool:
     return jax.process_index() == 0
 
 
+_BATCHED: dict = {}  # the model of a sweep -> its compiled chunk function (repeated runs compile once)
+
+
 def batched(sweep: Sweep):
     """A jitted, vmapped run of a chunk of parameter sets; the chunk's batch axis is
     sharded over `jax.devices()`. Returns (function, devices); the chunk length must be
-    a multiple of the device count."""
+    a multiple of the device count. Sweeps of the same model share one function."""
+    key = repr((sweep.names, sweep.protocol, sweep.base, sweep.t_end_s, sweep.outputs, sweep.chunk, sweep.grid, sweep.beam,
+                sweep.coupling_interval_s, sweep.rtol, sweep.max_steps, jax.devices()))
+    if key not in _BATCHED:
+        _BATCHED[key] = _batched(sweep)
+    return _BATCHED[key]
+
+
+def _batched(sweep: Sweep):
     devices = jax.devices()
     mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
@@ -247,7 +258,8 @@ def batched(sweep: Sweep):
     return run, len(devices)
 
 
-def _fingerprint(sweep: Sweep) -> str:
+def fingerprint(sweep: Sweep) -> str:
+    """A short hash of the sweep file and its points (what a resumed sweep must match)."""
     return hashlib.sha256((sweep.source + repr(sweep.points.tolist())).encode()).hexdigest()[:16]
 
 
@@ -259,7 +271,7 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     out = pathlib.Path(out)
     chunks = out / "chunks"
     manifest = chunks / "sweep.json"
-    stamp = {"fingerprint": _fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
+    stamp = {"fingerprint": fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
     writer = is_writer()
     if writer:
         chunks.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,123 @@
+"""Sweeps on a Dask cluster (dask.distributed), written into a Zarr store.
+
+Each chunk of a `Sweep` is one Dask task: in a worker process, one jitted, vmapped
+batch (`sweep.batched`, compiled once per worker). The client writes each finished
+chunk into `DIR/sweep.zarr` by region (`xarray.Dataset.to_zarr(region=...)`) and marks
+it done, so that `resume=True` skips the regions already written; at the end it writes
+`DIR/sweep.nc`, the file a serial run writes. Dask re-runs the tasks of a worker that
+is lost. `cluster="local:N"` starts a `LocalCluster` of N single-threaded worker
+processes; any other value is a scheduler's address (`tcp://host:8786`), e.g. of a
+dask-jobqueue cluster on SLURM (docs/numerics.md).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import re
+
+import numpy as np
+
+from ..io import InputError, write_netcdf
+from ..result import SCALARS
+from .sweep import Sweep, batched, fingerprint, to_dataset
+
+STORE = "sweep.zarr"
+
+
+def run_chunk(sweep: Sweep, start: int) -> dict:
+    """The outputs of the chunk starting at point `start` (runs in a worker)."""
+    fn, n_dev = batched(sweep)  # compiled once per worker process
+    values = sweep.points[start : start + sweep.chunk]
+    batch = -(-sweep.chunk // n_dev) * n_dev
+    result = fn(np.concatenate([values, np.repeat(values[-1:], batch - len(values), axis=0)]))
+    return {k: v[: len(values)] for k, v in result.items()}
+
+
+def check_cluster(cluster: str) -> int | None:
+    """The number of local workers of `"local:N"`, None for a scheduler address; an
+    `InputError` for anything else."""
+    local = re.fullmatch(r"local:(\d+)", cluster)
+    if local:
+        n = int(local.group(1))
+        if not 1 <= n <= 256:
+            raise InputError(f"`dask` = {cluster!r}: local:N needs 1 <= N <= 256 worker processes")
+        return n
+    if not re.fullmatch(r"[a-z]+://[^\s/]+(:\d+)?", cluster):
+        raise InputError(f"`dask` = {cluster!r}: expected local:N or a scheduler address such as tcp://host:8786")
+    return None
+
+
+def client(cluster: str):
+    """A `dask.distributed.Client` for `"local:N"` (a new LocalCluster of N worker
+    processes, one thread each) or a scheduler address (`check_cluster`)."""
+    from dask.distributed import Client, LocalCluster
+
+    n = check_cluster(cluster)
+    if n is not None:
+        return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+    try:
+        return Client(cluster)  # waits up to dask's distributed.comm.timeouts.connect
+    except OSError as err:
+        raise InputError(f"`dask` = {cluster!r}: no scheduler there ({err})") from None
+
+
+def _empty_store(sweep: Sweep, store: pathlib.Path, stamp: dict) -> None:
+    import xarray as xr
+
+    n, width = sweep.size, sweep.chunk
+    extra = sweep.times().size if sweep.outputs == "series" else None
+    shape = (n,) if extra is None else (n, extra)
+    dims = ("point",) if extra is None else ("point", "time_s")
+    ds = xr.Dataset({k: (dims, np.full(shape, np.nan)) for k in SCALARS})
+    ds["failed"] = ("point", np.zeros(n, bool))
+    ds["chunk_done"] = ("chunk", np.zeros(-(-n // width), bool))
+    ds.attrs["jaxtissue_sweep"] = json.dumps(stamp)
+    encoding = {k: {"chunks": (width,) + (() if extra is None else (extra,))} for k in SCALARS}
+    encoding |= {"failed": {"chunks": (width,)}, "chunk_done": {"chunks": (1,)}}
+    ds.to_zarr(store, mode="w", encoding=encoding, consolidated=False)
+
+
+def _write_region(store: pathlib.Path, start: int, width: int, result: dict) -> None:
+    import xarray as xr
+
+    n = len(result["failed"])
+    data = {k: (("point",) + (("time_s",) if np.ndim(result[k]) > 1 else ()), np.asarray(result[k], float)) for k in SCALARS}
+    data["failed"] = ("point", np.asarray(result["failed"], bool))
+    xr.Dataset(data).to_zarr(store, region={"point": slice(start, start + n)}, consolidated=False)
+    done = xr.Dataset({"chunk_done": ("chunk", np.ones(1, bool))})
+    done.to_zarr(store, region={"chunk": slice(start // width, start // width + 1)}, consolidated=False)  # after the values
+
+
+def run(sweep: Sweep, out, cluster: str, resume: bool = False, progress: bool = False):
+    """Run every chunk not yet in `out/sweep.zarr` as a Dask task on `cluster`, then
+    write `out/sweep.nc`. Returns the `xarray.Dataset` (equal to `sweep.run`'s)."""
+    import xarray as xr
+    from dask.distributed import as_completed
+    from tqdm.auto import tqdm
+
+    out = pathlib.Path(out)
+    store = out / STORE
+    stamp = {"fingerprint": fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
+    if resume and store.exists():
+        held = xr.open_zarr(store, consolidated=False)
+        if json.loads(held.attrs.get("jaxtissue_sweep", "{}")) != stamp:
+            raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
+        done = np.asarray(held["chunk_done"].values)
+    else:
+        done = np.zeros(-(-sweep.size // sweep.chunk), bool)
+    starts = [k * sweep.chunk for k in range(len(done)) if not done[k]]
+    with client(cluster) as dask, tqdm(total=len(done), initial=int(done.sum()), desc="sweep", unit="chunk",
+                                       disable=not progress) as bar:
+        if not done.any():  # the store once the cluster is there: a cluster that fails leaves nothing
+            out.mkdir(parents=True, exist_ok=True)
+            _empty_store(sweep, store, stamp)
+        futures = {dask.submit(run_chunk, sweep, s, pure=False): s for s in starts}
+        for future in as_completed(futures):
+            _write_region(store, futures[future], sweep.chunk, future.result())
+            bar.update(1)
+    held = xr.open_zarr(store, consolidated=False).load()
+    merged = {k: held[k].values for k in (*SCALARS, "failed")}
+    ds = to_dataset(sweep, merged)
+    write_netcdf(ds, out / "sweep.nc")
+    return ds

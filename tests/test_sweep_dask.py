@@ -1,0 +1,132 @@
+"""Sweeps on Dask (`jaxtissue sweep --dask`): the shipped sweep file gives the serial
+run's `sweep.nc` to 1e-12 although a worker process is killed mid-sweep; a killed
+client's sweep completes with `--resume`; the SLURM cluster of the docs is built."""
+
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import psutil
+import pytest
+import xarray as xr
+
+from jaxtissue import sweep as sw
+from jaxtissue.cli import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "sweeps" / "kinetics.toml"
+OUTPUTS = ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "EI_N_m2")
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    return sw.run(sw.read_sweep(SHIPPED), tmp_path_factory.mktemp("serial") / "s")
+
+
+def assert_same(path, serial):
+    ds = xr.load_dataset(path)
+    for k in OUTPUTS:
+        np.testing.assert_allclose(ds[k].values, serial[k].values, rtol=1e-12)
+    np.testing.assert_array_equal(ds["failed"].values, serial["failed"].values)
+
+
+def start(out, *extra):
+    cmd = [sys.executable, "-m", "jaxtissue.cli", "sweep", str(SHIPPED), "--out", str(out), "--dask", "local:2", "--no-progress", *extra]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def workers(proc):
+    """The Dask worker processes of a `--dask local:N` command."""
+    return [p for p in psutil.Process(proc.pid).children(recursive=True) if "spawn_main" in " ".join(p.cmdline())]
+
+
+def wait_for(condition, proc, seconds, what):
+    deadline = time.time() + seconds
+    while not condition():
+        assert proc.poll() is None, f"the command ended before {what}: {proc.communicate()[1][-2000:]}"
+        assert time.time() < deadline, f"no {what} within {seconds} s"
+        time.sleep(0.05)
+
+
+def chunks_done(out) -> int:
+    try:
+        return int(xr.open_zarr(out / "sweep.zarr", consolidated=False)["chunk_done"].values.sum())
+    except Exception:  # the store is being created
+        return 0
+
+
+def test_a_lost_worker_changes_nothing(tmp_path, serial):
+    """A worker process killed while it compiles its first chunk: Dask re-runs its tasks
+    and `sweep.nc` equals the serial run's to 1e-12."""
+    out = tmp_path / "d"
+    proc = start(out)
+    try:
+        # the store appears once the cluster is up, just before the tasks are submitted
+        wait_for(lambda: (out / "sweep.zarr").exists(), proc, 120, "a running cluster")
+        time.sleep(1.0)
+        assert chunks_done(out) == 0  # the workers are still compiling their first chunk
+        victim = workers(proc)[0]
+        victim.kill()
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, stderr[-2000:]
+    assert "16 parameter sets, 0 failed" in stdout
+    assert not victim.is_running()
+    assert_same(out / "sweep.nc", serial)
+
+
+def test_a_killed_client_resumes(tmp_path, serial):
+    """The client killed once a chunk is in the Zarr store: `--resume` runs the rest and
+    writes the serial run's `sweep.nc`."""
+    out = tmp_path / "d"
+    proc = start(out)
+    try:
+        wait_for(lambda: chunks_done(out) >= 1, proc, 300, "a finished chunk")
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert not (out / "sweep.nc").exists()
+    kept = chunks_done(out)
+    assert main(["sweep", str(SHIPPED), "--out", str(out), "--dask", "local:2", "--resume", "--no-progress"]) == 0
+    assert_same(out / "sweep.nc", serial)
+    assert kept >= 1 and chunks_done(out) == 8
+
+
+def test_dask_mistakes_are_one_line_errors(tmp_path, capsys):
+    import dask
+
+    for cluster, words in (("local:0", "local:N needs 1 <= N <= 256"), ("nonsense", "expected local:N or a scheduler address"),
+                           ("tcp://localhost:1", "no scheduler there")):
+        with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+            assert main(["sweep", str(SHIPPED), "--out", str(tmp_path / "o"), "--dask", cluster]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err, err
+        assert not (tmp_path / "o").exists()
+    assert main(["sweep", str(SHIPPED), "--out", str(tmp_path / "o"), "--dask", "local:2", "--resume"]) == 2
+    assert "no interrupted --dask sweep there (sweep.zarr missing)" in capsys.readouterr().err
+
+
+def test_the_documented_slurm_cluster_is_built():
+    """docs/numerics.md's dask-jobqueue example: the cluster object and its job script
+    (no scheduler is needed to build them)."""
+    text = (ROOT / "docs" / "numerics.md").read_text()
+    example = text.split("### On Dask", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert "cluster.scale(jobs=4)" in example and "sweep_dask.run(" in example
+    lines = [line for line in example.splitlines() if not line.startswith(("cluster.scale", "sweep_dask.run"))]
+    namespace = {}
+    exec(compile("\n".join(lines), "docs/numerics.md", "exec"), namespace)
+    cluster = namespace["cluster"]
+    try:
+        script = cluster.job_script()
+        assert "#SBATCH -A my_account" in script and "--cpus-per-task=8" in script and "--nworkers 8" in script
+        assert namespace["address"] == cluster.scheduler_address and cluster.scheduler_address.startswith("tcp://")
+    finally:
+        cluster.close()
