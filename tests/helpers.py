@@ -1,5 +1,7 @@
 """Shared test utilities."""
 
+import time
+
 import numpy as np
 
 
@@ -29,3 +31,13 @@ beam_steps_per_cycle = 24
 coupling_interval_s = 604800.0
 """
 """The [model] table of the small flex problems of the calibration and optimisation tests."""
+
+
+def wait_for(condition, proc, seconds, what):
+    """Poll `condition()` while the subprocess `proc` runs; fail if it ends first or
+    `seconds` pass."""
+    deadline = time.time() + seconds
+    while not condition():
+        assert proc.poll() is None, f"the command ended before {what}"
+        assert time.time() < deadline, f"no {what} within {seconds} s"
+        time.sleep(0.05)

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import pytest
 
 import jaxtissue as jt
+from helpers import wait_for
 from jaxtissue import limits
 from jaxtissue.cli import main
 from jaxtissue.coupling import PAPER_RULE_C, with_rule_constant
@@ -144,14 +145,6 @@ def test_an_extrapolating_flex_run_warns_and_records_it(tmp_path, capsys):
     assert len(summary["warnings"]) == 2 and summary["warnings"][0] in warned[0] and "lumping" not in summary
 
 
-def _wait_for(condition, proc, seconds, what):
-    deadline = time.time() + seconds
-    while not condition():
-        assert proc.poll() is None, f"the command ended before {what}"
-        assert time.time() < deadline, f"no {what} within {seconds} s"
-        time.sleep(0.05)
-
-
 def test_sigint_ends_a_run_at_once_and_a_second_writer_is_refused(tmp_path, capsys):
     """SIGINT reaches a command inside its compiled run: exit 130 within seconds, one
     line, no output folder, no partial or lock file. While it ran, a second command
@@ -162,10 +155,10 @@ def test_sigint_ends_a_run_at_once_and_a_second_writer_is_refused(tmp_path, caps
     with open(log, "w") as stderr:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True)
     try:
-        _wait_for(lambda: (tmp_path / ".r.lock").exists(), proc, 120, "lock")
+        wait_for(lambda: (tmp_path / ".r.lock").exists(), proc, 120, "lock")
         assert main(["simulate", "--out", str(out)]) == 2
         assert "another jaxtissue command (pid" in one_line(capsys)
-        _wait_for(lambda: re.search(r"\| *[1-9]\d*/\d+ \[", log.read_text()), proc, 300, "an interval done")
+        wait_for(lambda: re.search(r"\| *[1-9]\d*/\d+ \[", log.read_text()), proc, 300, "an interval done")
         sent = time.perf_counter()
         os.killpg(proc.pid, signal.SIGINT)
         assert proc.wait(timeout=30) == 130

@@ -14,6 +14,8 @@ import psutil
 import pytest
 import xarray as xr
 
+from helpers import wait_for
+
 from jaxtissue import sweep as sw
 from jaxtissue.cli import main
 
@@ -42,14 +44,6 @@ def start(out, *extra):
 def workers(proc):
     """The Dask worker processes of a `--dask local:N` command."""
     return [p for p in psutil.Process(proc.pid).children(recursive=True) if "spawn_main" in " ".join(p.cmdline())]
-
-
-def wait_for(condition, proc, seconds, what):
-    deadline = time.time() + seconds
-    while not condition():
-        assert proc.poll() is None, f"the command ended before {what}: {proc.communicate()[1][-2000:]}"
-        assert time.time() < deadline, f"no {what} within {seconds} s"
-        time.sleep(0.05)
 
 
 def chunks_done(out) -> int:
