@@ -10,9 +10,10 @@ from jaxtissue.cli import main
 
 
 def one_error_line(capsys):
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("jaxtissue: error: ")
-    return err
+    """The one error line on stderr (after any `jaxtissue: warning:` lines)."""
+    lines = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("jaxtissue: warning: ")]
+    assert len(lines) == 1 and lines[0].startswith("jaxtissue: error: "), lines
+    return lines[0]
 
 
 def test_step_limit_reports_time_reached_and_hint(tmp_path, capsys):
@@ -41,7 +42,9 @@ def test_beam_non_convergence_is_reported(tmp_path, capsys):
     assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle; the run is valid up to t = 0 s")
     out = tmp_path / "c"
     assert main(["cycle", "--post-displacement", "24", "--steps", "8", "--segments", "8", "--ny", "8", "--out", str(out)]) == 1
-    assert "did not converge" in one_error_line(capsys) and not out.exists()
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and "post_displacement_mm = 24 mm is outside the supported range" in err[0]  # extrapolation: said
+    assert err[1].startswith("jaxtissue: error: ") and "did not converge" in err[1] and not out.exists()
 
 
 def test_post_displacement_is_bounded_by_the_strip_in_the_parameters():
