@@ -28,7 +28,7 @@ import numpy as np
 
 from .cache import enable_compilation_cache
 from .grid import DEFAULT_SHAPES
-from .io import InputError
+from .io import InputError, RunError
 from .limits import MAX_STEPS
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S
 
@@ -52,6 +52,7 @@ FLAGS = {
     "draws": "--draws",
     "hold_out": "--hold-out",
     "save": "--save",
+    "nest_intervals": "--nest-intervals",
     "dask": "--dask",
     "num_processes": "--num-processes",
     "process_id": "--process-id",
@@ -679,6 +680,9 @@ def _run(args) -> int:
     except KeyboardInterrupt:
         print("jaxtissue: interrupted; nothing was written", file=sys.stderr)
         return 130
+    except RunError as err:
+        print(f"jaxtissue: error: {err}. Nothing was written.", file=sys.stderr)
+        return 1
     except BrokenPipeError:  # e.g. `jaxtissue params | head`
         sys.stderr.close()
         return 0

@@ -23,6 +23,11 @@ class InputError(ValueError):
     """A user's input is wrong; the message is one line naming what and why."""
 
 
+class RunError(RuntimeError):
+    """A run that could not be carried out, through no fault of the input (e.g. a
+    cluster that did not start): one line, exit code 1."""
+
+
 _LOCKS: dict[pathlib.Path, int] = {}  # lock file -> its open descriptor, while this process writes there
 _PARTIAL: set[pathlib.Path] = set()  # temporary output folders and files not yet renamed into place
 _COMMIT = threading.Lock()  # renaming a finished folder into place, or discarding the partial ones

@@ -55,6 +55,8 @@ def test_absurd_and_oversized_runs_are_input_errors_before_compiling():
         jt.simulate(p, grid=jt.Grid(1, 100_000_000))
     with pytest.raises(ValueError, match=r"max_steps = 10000000 must be an integer in \[1, 1000000\]"):
         jt.SolverOptions(max_steps=10**7)
+    with pytest.raises(limits.ResourceError, match=r"computing the sensitivities of a 2000 x 2000 flex run needs about .*; a coarser `grid` or `nest_intervals`"):
+        jt.sensitivity.sensitivities(p, jt.Protocol.flex(), grid=jt.Grid(2000, 2000))  # a reverse pass per output
     assert time.perf_counter() - start < 5
     assert issubclass(limits.ResourceError, ValueError)
 

@@ -108,6 +108,19 @@ def test_dask_mistakes_are_one_line_errors(tmp_path, capsys):
     assert "no interrupted --dask sweep there (sweep.zarr missing)" in capsys.readouterr().err
 
 
+def test_a_cluster_that_does_not_start_is_one_line(tmp_path, capsys, monkeypatch):
+    import dask.distributed
+
+    def broken(**kwargs):
+        raise RuntimeError("Nanny failed to start.")
+
+    monkeypatch.setattr(dask.distributed, "LocalCluster", broken)
+    assert main(["sweep", str(SHIPPED), "--out", str(tmp_path / "o"), "--dask", "local:2"]) == 1
+    err = capsys.readouterr().err
+    assert err == "jaxtissue: error: the Dask cluster local:2 did not start (Nanny failed to start.). Nothing was written.\n"
+    assert not (tmp_path / "o").exists()
+
+
 def test_the_documented_slurm_cluster_is_built():
     """docs/numerics.md's dask-jobqueue example: the cluster object and its job script
     (no scheduler is needed to build them)."""

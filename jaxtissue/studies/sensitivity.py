@@ -6,8 +6,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .. import limits
+from ..grid import Grid
 from ..params import Params
-from ..protocol import PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol
+from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol
 from ..simulate import simulate
 
 SENSITIVITY_OUTPUTS = ("dna_ug_per_g", "collagen_mg_per_g", "EI_N_m2", "post_force_max_N")
@@ -17,6 +19,13 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
     """{output: {parameter: d ln(output)/d ln(parameter)}} at `t_end_s` (one reverse
     pass per output; the protocol's floats count as parameters). Outputs that are zero
     (the post force in static culture) are left out."""
+    grid = simulate_kw.get("grid") or Grid.default(protocol.regime)
+    options = simulate_kw.get("options")
+    need = limits.estimate(grid.nx * grid.ny, t_end_s, simulate_kw.get("coupling_interval_s", COUPLING_INTERVAL_S), save_series=False,
+                           reverse=not (options is not None and options.nest_intervals), batch=len(SENSITIVITY_OUTPUTS),
+                           regime=protocol.regime)
+    limits.check_memory(need, f"computing the sensitivities of a {grid.nx} x {grid.ny} {protocol.regime} run",
+                        "a coarser `grid`" + (" or `nest_intervals`" if protocol.regime == "flex" else ""))
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), params)
     protocol = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), protocol)
 

@@ -18,7 +18,7 @@ import re
 
 import numpy as np
 
-from ..io import InputError, write_netcdf
+from ..io import InputError, RunError, write_netcdf
 from ..result import SCALARS
 from .sweep import Sweep, batched, fingerprint, to_dataset
 
@@ -32,6 +32,10 @@ def run_chunk(sweep: Sweep, start: int) -> dict:
     batch = -(-sweep.chunk // n_dev) * n_dev
     result = fn(np.concatenate([values, np.repeat(values[-1:], batch - len(values), axis=0)]))
     return {k: v[: len(values)] for k, v in result.items()}
+
+
+class ClusterError(RunError):
+    """A Dask cluster that could not be started."""
 
 
 def check_cluster(cluster: str) -> int | None:
@@ -55,7 +59,10 @@ def client(cluster: str):
 
     n = check_cluster(cluster)
     if n is not None:
-        return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+        try:
+            return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+        except (RuntimeError, OSError, TimeoutError) as err:  # e.g. a worker process that dies while starting
+            raise ClusterError(f"the Dask cluster {cluster} did not start ({err})") from None
     try:
         return Client(cluster)  # waits up to dask's distributed.comm.timeouts.connect
     except OSError as err:
