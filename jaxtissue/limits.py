@@ -50,10 +50,6 @@ SUPPORTED: dict[str, Supported] = {
 }
 """The ranges the model and its data support, by `Params`, `Protocol` or run field."""
 
-FOLDED_FRACTION = 0.8
-"""A post displacement above this fraction of the strip length folds the strip: its
-loading cycle is not solved (docs/model.md §4)."""
-
 
 class ExtrapolationWarning(UserWarning):
     """A value outside the range the model and its data support (`SUPPORTED`)."""
@@ -110,7 +106,6 @@ _SOLVE_BYTES_PER_CELL = {"static": 1000, "flex": 2000}
 _STATE_BYTES_PER_CELL = 3 * 8
 _REVERSE_CHECKPOINTS = 8
 _BASE_BYTES = 1.0e9  # the interpreter, JAX, XLA's compiler
-
 
 _SECONDS_PER_CELL_STEP = 5e-6  # benchmarks/scaling.py: 4.7-5.3 us per cell and growth step on 2 cores
 _STEPS_PER_INTERVAL = {"static": 1.0, "flex": 7.0}  # the default runs: ~90 steps in all, ~7 per interval
