@@ -301,10 +301,9 @@ def cmd_simulate(args) -> int:
     import pathlib
     import shutil
 
-    from . import io, plots
-    from .grid import Grid
-    from . import limits
+    from . import io, limits, plots
     from .coupling import with_rule_constant
+    from .grid import Grid
     from .params import Params
     from .protocol import Protocol
     from .simulate import SolverOptions, simulate
@@ -403,7 +402,6 @@ def cmd_cycle(args) -> int:
 
     from . import io, plots
     from .beam import Beam, BeamGrid, Geometry, Material, loading_cycle
-
     from .limits import warn_extrapolation
 
     params = load_params(args)

@@ -225,8 +225,7 @@ def output_folder(out, overwrite: bool = False):
     """Yield a temporary sibling folder; on success it replaces `out` in one rename.
 
     If anything fails, the temporary folder is removed and `out` is untouched."""
-    out = check_output_folder(out, overwrite)
-    lock_output(out)
+    out = check_output_folder(out, overwrite)  # (and claims it, `lock_output`)
     tmp = pathlib.Path(tempfile.mkdtemp(dir=out.resolve().parent, prefix=f".{out.name}.partial-"))
     _PARTIAL.add(tmp)
     os.chmod(tmp, 0o777 & ~_umask())

@@ -27,7 +27,6 @@ from .. import limits
 from ..beam import BeamGrid
 from ..grid import Grid
 from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
-from ..limits import MAX_SWEEP_POINTS
 from ..params import FIELDS, Params, suggest
 from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
 from ..result import OUTPUTS, SCALARS
@@ -145,14 +144,14 @@ def read_sweep(path) -> Sweep:
     if design == "grid":
         axes = {n: grid_axis(n, specs[n], f"{where}: [parameters]") for n in names}
         size = math.prod(len(a) for a in axes.values())
-        if size > MAX_SWEEP_POINTS:
-            raise InputError(f"{where}: the grid of [parameters] has {size:.3g} points; a sweep may have at most {MAX_SWEEP_POINTS}")
+        if size > limits.MAX_SWEEP_POINTS:
+            raise InputError(f"{where}: the grid of [parameters] has {size:.3g} points; a sweep may have at most {limits.MAX_SWEEP_POINTS}")
         mesh = np.meshgrid(*axes.values(), indexing="ij")
         points = np.stack([m.ravel() for m in mesh], axis=1)
     elif design in ("lhs", "sobol"):
         samples = doc.get("samples")
-        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_SWEEP_POINTS:
-            raise InputError(f"{where}: samples = {samples!r} must be an integer in [1, {MAX_SWEEP_POINTS}] with design = {design!r}")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= limits.MAX_SWEEP_POINTS:
+            raise InputError(f"{where}: samples = {samples!r} must be an integer in [1, {limits.MAX_SWEEP_POINTS}] with design = {design!r}")
         seed = doc.get("seed", 0)
         axes = None
         points = space_filling(names, specs, design, samples, seed, f"{where}: [parameters]")
@@ -258,6 +257,16 @@ def _batched(sweep: Sweep):
     return run, len(devices)
 
 
+def run_chunk(sweep: Sweep, start: int) -> dict:
+    """The outputs of the chunk starting at point `start`: `batched`'s function on its
+    points, the batch padded with copies of the last point (one compiled batch shape)."""
+    fn, n_dev = batched(sweep)
+    values = sweep.points[start : start + sweep.chunk]
+    batch = -(-sweep.chunk // n_dev) * n_dev
+    result = fn(np.concatenate([values, np.repeat(values[-1:], batch - len(values), axis=0)]))
+    return {k: v[: len(values)] for k, v in result.items()}
+
+
 def fingerprint(sweep: Sweep) -> str:
     """A short hash of the sweep file and its points (what a resumed sweep must match)."""
     return hashlib.sha256((sweep.source + repr(sweep.points.tolist())).encode()).hexdigest()[:16]
@@ -268,6 +277,12 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     Returns the `xarray.Dataset`."""
     from tqdm.auto import tqdm
 
+    _, n_dev = batched(sweep)
+    batch = -(-sweep.chunk // n_dev) * n_dev  # the chunk padded to a multiple of the device count (`run_chunk`)
+    need = limits.estimate(sweep.grid.nx * sweep.grid.ny, sweep.t_end_s, sweep.coupling_interval_s,
+                           save_series=sweep.outputs != "final", batch=batch, regime=sweep.protocol.regime)
+    limits.check_memory(need, f"a chunk of {batch} runs on the {sweep.grid.nx} x {sweep.grid.ny} grid",
+                        "a smaller `chunk` in the sweep file, `outputs = \"final\"` or a coarser grid")
     out = pathlib.Path(out)
     chunks = out / "chunks"
     manifest = chunks / "sweep.json"
@@ -280,14 +295,7 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
                 raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
         else:
             atomic_write_text(manifest, json.dumps(stamp))
-    fn, n_dev = batched(sweep)
-    width = sweep.chunk  # the chunk files do not depend on the device count ...
-    batch = -(-width // n_dev) * n_dev  # ... the batch is padded to a multiple of it
-    need = limits.estimate(sweep.grid.nx * sweep.grid.ny, sweep.t_end_s, sweep.coupling_interval_s,
-                           save_series=sweep.outputs != "final", batch=batch, regime=sweep.protocol.regime)
-    limits.check_memory(need, f"a chunk of {batch} runs on the {sweep.grid.nx} x {sweep.grid.ny} grid",
-                        "a smaller `chunk` in the sweep file, `outputs = \"final\"` or a coarser grid")
-    starts = range(0, sweep.size, width)
+    starts = range(0, sweep.size, sweep.chunk)
     done = np.array([resume and (chunks / f"{s:08d}.npz").exists() for s in starts])
     if jax.process_count() > 1:  # every process runs the same chunks: process 0's view of the folder
         from jax.experimental import multihost_utils
@@ -297,10 +305,7 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     computed = {}
     with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not (progress and writer)) as bar:
         for s in todo:
-            values = sweep.points[s : s + width]
-            pad = batch - values.shape[0]
-            result = fn(np.concatenate([values, np.repeat(values[-1:], pad, axis=0)]))
-            result = {k: v[: values.shape[0]] for k, v in result.items()}
+            result = run_chunk(sweep, s)
             if writer:
                 atomic_write(chunks / f"{s:08d}.npz", lambda f, result=result: np.savez(f, **result))
             computed[s] = result

@@ -20,18 +20,9 @@ import numpy as np
 
 from ..io import InputError, RunError, write_netcdf
 from ..result import SCALARS
-from .sweep import Sweep, batched, fingerprint, to_dataset
+from .sweep import Sweep, fingerprint, run_chunk, to_dataset
 
 STORE = "sweep.zarr"
-
-
-def run_chunk(sweep: Sweep, start: int) -> dict:
-    """The outputs of the chunk starting at point `start` (runs in a worker)."""
-    fn, n_dev = batched(sweep)  # compiled once per worker process
-    values = sweep.points[start : start + sweep.chunk]
-    batch = -(-sweep.chunk // n_dev) * n_dev
-    result = fn(np.concatenate([values, np.repeat(values[-1:], batch - len(values), axis=0)]))
-    return {k: v[: len(values)] for k, v in result.items()}
 
 
 class ClusterError(RunError):
@@ -106,7 +97,8 @@ def run(sweep: Sweep, out, cluster: str, resume: bool = False, progress: bool = 
     out = pathlib.Path(out)
     store = out / STORE
     stamp = {"fingerprint": fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
-    if resume and store.exists():
+    fresh = not (resume and store.exists())
+    if not fresh:
         held = xr.open_zarr(store, consolidated=False)
         if json.loads(held.attrs.get("jaxtissue_sweep", "{}")) != stamp:
             raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
@@ -116,7 +108,7 @@ def run(sweep: Sweep, out, cluster: str, resume: bool = False, progress: bool = 
     starts = [k * sweep.chunk for k in range(len(done)) if not done[k]]
     with client(cluster) as dask, tqdm(total=len(done), initial=int(done.sum()), desc="sweep", unit="chunk",
                                        disable=not progress) as bar:
-        if not done.any():  # the store once the cluster is there: a cluster that fails leaves nothing
+        if fresh:  # the store once the cluster is there: a cluster that fails leaves nothing
             out.mkdir(parents=True, exist_ok=True)
             _empty_store(sweep, store, stamp)
         futures = {dask.submit(run_chunk, sweep, s, pure=False): s for s in starts}
