@@ -4,7 +4,8 @@
     jaxtissue simulate --regime static|flex … one culture, to a folder of files and figures
     jaxtissue cycle …                        one loading cycle of the poroelastic beam
     jaxtissue reproduce --out DIR            the paper's study: six cases, figures, report
-    jaxtissue calibrate PROBLEM.toml --out DIR   fit parameters to measurements (--posterior: and sample)
+    jaxtissue calibrate PROBLEM --out DIR    fit parameters to measurements (TOML or PEtab v2; --posterior: and sample)
+    jaxtissue lint PROBLEM.yaml              check a PEtab v2 problem (the petab linter with jaxtissue's model)
     jaxtissue predict --posterior DIR --out DIR  posterior predictive bands of a protocol
     jaxtissue sweep SWEEP.toml --out DIR     a batch of simulations
     jaxtissue sensitivity --out DIR          d ln(output)/d ln(parameter)
@@ -46,6 +47,7 @@ FLAGS = {
     "steps_per_cycle": "--steps",
     "t_end_s": "--t-end",
     "out": "--out",
+    "export_petab": "--export-petab",
     "overwrite": "--overwrite",
     "resume": "--resume",
     "posterior": "--posterior",
@@ -142,7 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_reproduce)
 
     k = sub.add_parser("calibrate", help="fit parameters to measurements (multi-start LM, standard errors, profiles)")
-    k.add_argument("problem", metavar="PROBLEM.toml", help="problem file, e.g. calibrate/engelmayr2005.toml")
+    k.add_argument("problem", metavar="PROBLEM", help="problem file: TOML (calibrate/engelmayr2005.toml) or PEtab v2 YAML "
+                   "(calibrate/engelmayr2005/problem.yaml)")
+    k.add_argument("--export-petab", metavar="DIR", help="write the TOML problem as PEtab v2 files into DIR instead of fitting")
     k.add_argument("--starts", type=_grid_size, default=None, metavar="N", help="number of starts (default: the problem's [fit] starts)")
     k.add_argument("--no-profiles", action="store_true", help="skip the profile likelihoods (identifiability then from standard errors)")
     k.add_argument("--posterior", action="store_true", help="then sample the posterior with NUTS: posterior.nc, pairs.png, traces.png")
@@ -151,9 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--samples", type=_grid_size, default=250, metavar="N", help="with --posterior: kept draws per chain (default 250)")
     k.add_argument("--seed", type=int, default=0, metavar="S", help="with --posterior: random seed (default 0)")
     k.add_argument("--hold-out", metavar="CONDITION", help="with --posterior: calibrate without that condition's data, then predict them")
-    _output_arguments(k)
+    _output_arguments(k, required=False)
     k.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
     k.set_defaults(func=cmd_calibrate)
+
+    t = sub.add_parser("lint", help="check a PEtab v2 calibration problem with the petab linter and jaxtissue's checks")
+    t.add_argument("problem", metavar="PROBLEM.yaml", help="PEtab v2 problem file, e.g. calibrate/engelmayr2005/problem.yaml")
+    t.set_defaults(func=cmd_lint)
 
     d = sub.add_parser("predict", help="posterior predictive bands of a protocol from a calibrated posterior")
     d.add_argument("--posterior", required=True, metavar="DIR", help="a `jaxtissue calibrate --posterior` output folder")
@@ -467,7 +475,22 @@ def cmd_calibrate(args) -> int:
     if args.posterior:
         sweep.use_all_cores()  # chains split over the cores; before anything starts JAX's backend
     overrides = {} if args.starts is None else {"starts": args.starts}
-    problem = calibration.read_problem(args.problem, overrides)
+    if args.export_petab is not None:
+        return _export_petab(args, overrides)
+    if args.out is None:
+        raise InputError("calibrate needs --out DIR (or --export-petab DIR to convert the problem)")
+    if _is_petab(args.problem):
+        from .studies import petab_problems
+
+        messages = petab_problems.errors(petab_problems.lint(args.problem))
+        for m in messages:
+            print(f"jaxtissue: error: {args.problem}: {m.split(': ', 1)[1]}", file=sys.stderr)
+        if messages:
+            return 2
+        problem = petab_problems.to_problem(petab_problems.load(args.problem))
+        problem = dataclasses.replace(problem, fit=dataclasses.replace(problem.fit, **overrides))
+    else:
+        problem = calibration.read_problem(args.problem, overrides)
     held_out = None
     if args.hold_out is not None:
         from .studies import posterior
@@ -502,6 +525,37 @@ def cmd_calibrate(args) -> int:
                   f" -> {'inside' if c['inside'] else 'OUTSIDE'}")
     print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
           + (", posterior.nc, pairs.png, traces.png)" if sampled is not None else ")"))
+    return 0
+
+
+def _is_petab(path) -> bool:
+    return str(path).lower().endswith((".yaml", ".yml"))
+
+
+def _export_petab(args, overrides) -> int:
+    from . import io
+    from .studies import calibration, petab_problems
+
+    if _is_petab(args.problem):
+        raise InputError(f"--export-petab: {args.problem} is a PEtab problem already; export takes a TOML problem")
+    problem = calibration.read_problem(args.problem, overrides)
+    with io.output_folder(args.export_petab, args.overwrite, argument="export_petab") as tmp:
+        files = petab_problems.export(problem, tmp)
+    print(f"wrote {args.export_petab}/ ({', '.join(files)}); check it with `jaxtissue lint {args.export_petab}/problem.yaml`")
+    return 0
+
+
+def cmd_lint(args) -> int:
+    from .studies import petab_problems
+
+    messages = petab_problems.lint(args.problem)
+    for m in messages:
+        print(f"{args.problem}: {m}")
+    if petab_problems.errors(messages):
+        return 2
+    problem = petab_problems.to_problem(petab_problems.load(args.problem))
+    print(f"{args.problem}: valid PEtab v2 problem for jaxtissue ({len(problem.observations)} measurements, "
+          f"{len(problem.conditions)} experiments, {len(problem.free)} estimated parameters)")
     return 0
 
 

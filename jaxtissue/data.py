@@ -25,6 +25,7 @@ class Observation(NamedTuple):
     sd: float
     unit: str
     source: str = ""
+    noise: str = "normal"  # `NOISE`: "normal": sd in the quantity's unit; "log-normal": sd of ln(value)
 
 
 ENGELMAYR = (
@@ -45,6 +46,9 @@ def observations(quantity: str, regime: str) -> list[Observation]:
 
 
 COLUMNS = ("observableId", "simulationConditionId", "time", "measurement", "noiseParameters")
+NOISE = ("normal", "log-normal")
+"""Measurement noise models (docs/model.md §9): "normal", value ~ N(model, sd²); "log-normal",
+ln value ~ N(ln model, sd²), sd then being the standard deviation of ln value."""
 
 
 class DataError(ValueError):
@@ -57,7 +61,9 @@ def read_measurements(path) -> tuple[Observation, ...]:
     Required columns: `observableId` (a key of `QUANTITIES`), `simulationConditionId`
     (a regime name; `seeded` for the t = 0 state common to all), `time` (s),
     `measurement` (mean), `noiseParameters` (SD > 0); optional `unit` (must match the
-    observable's) and `source`. Any mistake is a `DataError` naming the row."""
+    observable's), `source` and `noiseDistribution` (`NOISE`, default "normal"; for
+    "log-normal" the SD is that of ln measurement, and measurements must be > 0). Any
+    mistake is a `DataError` naming the row."""
     path = pathlib.Path(path)
     try:
         text = path.read_text()
@@ -94,7 +100,13 @@ def read_measurements(path) -> tuple[Observation, ...]:
         unit = (row.get("unit") or QUANTITIES[name]).strip()
         if unit != QUANTITIES[name]:
             raise DataError(f"{where}: unit {unit!r} of {name} must be {QUANTITIES[name]!r}")
-        rows.append(Observation(name, condition, values["time"], values["measurement"], values["noiseParameters"], unit, (row.get("source") or "").strip()))
+        noise = (row.get("noiseDistribution") or "normal").strip()
+        if noise not in NOISE:
+            raise DataError(f"{where}: noiseDistribution = {noise!r}; allowed: {', '.join(NOISE)}")
+        if noise == "log-normal" and values["measurement"] <= 0:
+            raise DataError(f"{where}: measurement = {values['measurement']:g} must be > 0 with log-normal noise")
+        rows.append(Observation(name, condition, values["time"], values["measurement"], values["noiseParameters"], unit,
+                                (row.get("source") or "").strip(), noise))
     if not rows:
         raise DataError(f"{path}: no measurements")
     return tuple(rows)

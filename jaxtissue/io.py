@@ -163,26 +163,26 @@ def atomic_write(path, write) -> None:
         _PARTIAL.discard(pathlib.Path(tmp))
 
 
-def check_output_folder(out, overwrite: bool) -> pathlib.Path:
-    """Fail early (an `InputError`) if `out` cannot be written or would be clobbered
-    (a non-empty folder, unless `overwrite`)."""
+def check_output_folder(out, overwrite: bool, argument: str = "out") -> pathlib.Path:
+    """Fail early (an `InputError` naming `argument`) if `out` cannot be written or would
+    be clobbered (a non-empty folder, unless `overwrite`)."""
     out = pathlib.Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError(f"`out` {out}: exists and is not a folder")
+        raise InputError(f"`{argument}` {out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"`out` {out}: folder exists and is not empty (pass `overwrite` to replace it)")
+        raise InputError(f"`{argument}` {out}: folder exists and is not empty (pass `overwrite` to replace it)")
     parent = out.resolve().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise InputError(f"`out` {out}: cannot create folder {parent} ({err.strerror})") from None
+        raise InputError(f"`{argument}` {out}: cannot create folder {parent} ({err.strerror})") from None
     if not os.access(parent, os.W_OK):
-        raise InputError(f"`out` {out}: cannot write in {parent}")
-    lock_output(out)
+        raise InputError(f"`{argument}` {out}: cannot write in {parent}")
+    lock_output(out, argument)
     return out
 
 
-def lock_output(out) -> None:
+def lock_output(out, argument: str = "out") -> None:
     """Claim `out` for this process (a lock file beside it, held until `release_outputs`):
     a second command writing the same folder is an `InputError`, not a mixed result."""
     out = pathlib.Path(out)
@@ -195,7 +195,7 @@ def lock_output(out) -> None:
     except BlockingIOError:
         holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
         os.close(fd)
-        raise InputError(f"`out` {out}: another jaxtissue command (pid {holder}) is writing this folder; "
+        raise InputError(f"`{argument}` {out}: another jaxtissue command (pid {holder}) is writing this folder; "
                          "wait for it or choose another folder") from None
     os.ftruncate(fd, 0)
     os.write(fd, str(os.getpid()).encode())
@@ -221,11 +221,12 @@ def release_outputs() -> None:
 
 
 @contextlib.contextmanager
-def output_folder(out, overwrite: bool = False):
-    """Yield a temporary sibling folder; on success it replaces `out` in one rename.
+def output_folder(out, overwrite: bool = False, argument: str = "out"):
+    """Yield a temporary sibling folder; on success it replaces `out` in one rename
+    (`argument`: the name errors give `out`).
 
     If anything fails, the temporary folder is removed and `out` is untouched."""
-    out = check_output_folder(out, overwrite)  # (and claims it, `lock_output`)
+    out = check_output_folder(out, overwrite, argument)  # (and claims it, `lock_output`)
     tmp = pathlib.Path(tempfile.mkdtemp(dir=out.resolve().parent, prefix=f".{out.name}.partial-"))
     _PARTIAL.add(tmp)
     os.chmod(tmp, 0o777 & ~_umask())

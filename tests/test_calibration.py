@@ -191,7 +191,7 @@ def test_calibrate_command_recovers_and_writes_its_files(tmp_path, capsys):
     assert summary["chi2"] < 1e-6 and summary["jacobian_vs_central_differences"] < 1e-4
     for key in ("standard_errors", "chi2", "identifiable", "observations"):
         assert key in summary
-    assert {"name", "regime", "time_s", "data_mean", "data_sd", "model"} == set(summary["observations"][0])
+    assert {"name", "regime", "time_s", "data_mean", "data_sd", "noise", "model", "residual"} == set(summary["observations"][0])
     fitted = read_params_toml(out / "fitted.toml")
     assert fitted.k_m0 == pytest.approx(summary["parameters"]["k_m0"])
     assert {"report.md", "waterfall.png", "fit.png", "profiles.png", "correlation.png"} <= {p.name for p in out.iterdir()}

@@ -157,12 +157,37 @@ class Problem:
         return jnp.stack(out)
 
     def data(self):
+        """(means, SDs) of the observations; the SD of ln(value) where the noise is log-normal."""
         return (np.array([o.mean for o in self.observations]), np.array([o.sd for o in self.observations]))
 
+    def log_normal(self) -> np.ndarray:
+        """Which observations have log-normal noise (docs/model.md §9)."""
+        return np.array([o.noise == "log-normal" for o in self.observations])
+
     def residuals(self, t) -> jax.Array:
-        """(model − mean)/sd at transformed free values t."""
+        """(model − mean)/sd, or (ln model − ln mean)/sd for log-normal noise, at
+        transformed free values t (docs/model.md §9)."""
+        return self.residuals_of(self.model_values(t))
+
+    def residuals_of(self, model) -> jax.Array:
+        """The residuals of given model values (last axis: the observations)."""
         mean, sd = self.data()
-        return (self.model_values(t) - mean) / sd
+        model = jnp.asarray(model)
+        if not self.log_normal().any():
+            return (model - mean) / sd
+        log = self.log_normal()
+        return jnp.where(log, jnp.log(jnp.where(log, model, 1.0)) - np.log(np.where(log, mean, 1.0)), model - mean) / sd
+
+    def model_from_residuals(self, r) -> np.ndarray:
+        """The model values whose residuals are r (last axis: the observations)."""
+        mean, sd = self.data()
+        return np.where(self.log_normal(), mean * np.exp(sd * np.asarray(r)), mean + sd * np.asarray(r))
+
+    def with_noise(self, model, z):
+        """Model values plus measurement noise with standard normal draws z (broadcast
+        against `model`, last axis: the observations)."""
+        _, sd = self.data()
+        return np.where(self.log_normal(), model * np.exp(sd * z), model + sd * z)
 
 
 # ---------------------------------------------------------------------------------------
@@ -198,6 +223,7 @@ class FitResult(NamedTuple):
 def _compiled(problem: Problem, jacobian: bool):
     """The problem's jitted residuals or their forward-mode Jacobian (cached)."""
     return jax.jit(jax.jacfwd(problem.residuals) if jacobian else problem.residuals)
+
 
 
 @functools.lru_cache(maxsize=8)
@@ -366,7 +392,20 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
 # ---------------------------------------------------------------------------------------
 
 _TOP = {"name", "measurements", "parameters", "conditions", "model", "fit"}
-_PROTOCOL = {"regime", "period_s", "post_displacement_mm", "hold_fraction", "lumping", "pins"}
+_PROTOCOL = {"regime", "period_s", "post_displacement_mm", "hold_fraction", "lumping", "pins", "stage_length_s"}
+
+
+def free_parameter(name: str, low: float, high: float, transform: str, prior, where: str) -> FreeParameter:
+    """A checked `FreeParameter`: bounds in the field's range, the transform, the prior
+    in its problem-file form (`priors.read_prior`; None: the default)."""
+    info = FIELDS[name]
+    if not (low < high and info.contains(low) and info.contains(high)):
+        raise InputError(f"{where} bounds = [{low:g}, {high:g}] must have low < high, both in {info.range_text()} {info.unit}")
+    if transform not in ("log", "linear"):
+        raise InputError(f"{where} transform = {transform!r}; allowed: 'log', 'linear'")
+    if transform == "log" and low <= 0:
+        raise InputError(f"{where}: a log transform needs low > 0, got {low:g}")
+    return FreeParameter(name, low, high, transform, None if prior is None else read_prior(prior, low, high, where))
 
 
 def read_problem(path, overrides: dict | None = None) -> Problem:
@@ -399,21 +438,12 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
             if k not in ("bounds", "transform", "start", "prior"):
                 raise InputError(f"{where}: unknown key {k!r} in {key}; {suggest(k, ['bounds', 'transform', 'start', 'prior'])}")
         low, high = bounds(spec["bounds"], f"{where}: {key} bounds")
-        info = FIELDS[name]
-        if not (low < high and info.contains(low) and info.contains(high)):
-            raise InputError(f"{where}: {key} bounds = [{low:g}, {high:g}] must have low < high, both in {info.range_text()} {info.unit}")
-        transform = spec.get("transform", "log")
-        if transform not in ("log", "linear"):
-            raise InputError(f"{where}: {key} transform = {transform!r}; allowed: 'log', 'linear'")
-        if transform == "log" and low <= 0:
-            raise InputError(f"{where}: {key} a log transform needs low > 0, got {low:g}")
+        free.append(free_parameter(name, low, high, spec.get("transform", "log"), spec.get("prior"), f"{where}: {key}"))
         if "start" in spec:
             start = spec["start"]
             if isinstance(start, bool) or not isinstance(start, (int, float)) or not low <= start <= high:
                 raise InputError(f"{where}: {key} start = {start!r} must be a number in [{low:g}, {high:g}]")
             base = base.replace(**{name: float(start)})
-        prior = read_prior(spec["prior"], low, high, f"{where}: {key}") if "prior" in spec else None
-        free.append(FreeParameter(name, low, high, transform, prior))
     if not free:
         raise InputError(f"{where}: [parameters.free] names no parameter to fit")
 
@@ -425,7 +455,12 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
             if k not in _PROTOCOL:
                 raise InputError(f"{where}: unknown key {k!r} in [conditions.{name}]; {suggest(k, sorted(_PROTOCOL))}")
         try:
-            conditions[name] = Protocol(**spec)
+            if "stage_length_s" in spec:  # a schedule: one period and amplitude per stage
+                if spec.get("regime") != "flex":
+                    raise ValueError("a schedule (stage_length_s) needs regime = \"flex\"")
+                conditions[name] = Protocol.schedule(**{k: v for k, v in spec.items() if k != "regime"})
+            else:
+                conditions[name] = Protocol(**spec)
         except (TypeError, ValueError) as err:
             raise InputError(f"{where}: [conditions.{name}] {err}") from None
     if not conditions:
@@ -499,8 +534,7 @@ def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = Fal
     seconds["fit"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     fi = fisher(problem, best.t, best.jacobian)
-    mean, sd = problem.data()
-    model = mean + sd * np.asarray(_compiled(problem, jacobian=False)(jnp.asarray(best.t)))
+    model = problem.model_from_residuals(np.asarray(_compiled(problem, jacobian=False)(jnp.asarray(best.t))))
     check = jacobian_fd_error(problem, best.t, fi.jacobian)
     seconds["uncertainty"] = time.perf_counter() - t0
     profs = []
@@ -526,8 +560,9 @@ def summary(cal: Calibration) -> dict:
         "identifiable": identifiable,
         "chi2": f.chi2,
         "observations": [
-            {"name": o.quantity, "regime": o.regime, "time_s": o.time_s, "data_mean": o.mean, "data_sd": o.sd, "model": float(m)}
-            for o, m in zip(p.observations, cal.model)
+            {"name": o.quantity, "regime": o.regime, "time_s": o.time_s, "data_mean": o.mean, "data_sd": o.sd, "noise": o.noise,
+             "model": float(m), "residual": float(r)}
+            for o, m, r in zip(p.observations, cal.model, np.asarray(p.residuals_of(cal.model)))
         ],
         "correlation": {n: dict(zip(p.names, row.tolist())) for n, row in zip(p.names, cal.fisher.correlation)},
         "starts": {"chi2": f.chi2_all.tolist(), "lm_steps": f.steps_all.tolist(), "converged": f.converged_all.tolist()},
@@ -559,11 +594,12 @@ def report(cal: Calibration) -> str:
         lo, hi = s["profile_intervals_95"].get(name, [None, None])
         interval = "—" if name not in s["profile_intervals_95"] else f"[{'bound' if lo is None else f'{lo:.4g}'}, {'bound' if hi is None else f'{hi:.4g}'}]"
         lines.append(f"| {name} ({FIELDS[name].unit}) | {s['parameters'][name]:.4g} | {s['standard_errors'][name]:.2g} | {interval} | {'yes' if s['identifiable'][name] else '**no**'} |")
-    lines += ["", "## Model against data", "", "| observable | condition | time (s) | data | model | (model − data)/SD |", "|---|---|---|---|---|---|"]
+    lines += ["", "## Model against data", "", "| observable | condition | time (s) | data | model | residual (SDs) |", "|---|---|---|---|---|---|"]
     off = []
     for o in s["observations"]:
-        z = (o["model"] - o["data_mean"]) / o["data_sd"]
-        lines.append(f"| {o['name']} | {o['regime']} | {o['time_s']:g} | {o['data_mean']:g} ± {o['data_sd']:g} | {o['model']:.4g} | {z:+.2f} |")
+        z = o["residual"]
+        spread = f"× e^±{o['data_sd']:g}" if o["noise"] == "log-normal" else f"± {o['data_sd']:g}"
+        lines.append(f"| {o['name']} | {o['regime']} | {o['time_s']:g} | {o['data_mean']:g} {spread} | {o['model']:.4g} | {z:+.2f} |")
         if abs(z) > 1:
             off.append(f"{o['name']} ({o['regime']}, {z:+.2f} SD)")
     lines += [""]

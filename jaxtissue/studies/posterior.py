@@ -265,9 +265,8 @@ def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndar
     """The model's value of each observation at every draw: t of shape (..., k) →
     (..., observations), `batch` draws at a time under vmap."""
     flat = np.asarray(t).reshape(-1, np.shape(t)[-1])
-    mean, sd = problem.data()
     r = np.concatenate(_in_batches(_batched_residuals(problem), flat, batch, progress))
-    return (mean + sd * r).reshape(*np.shape(t)[:-1], -1)
+    return problem.model_from_residuals(r).reshape(*np.shape(t)[:-1], -1)
 
 
 @functools.lru_cache(maxsize=4)
@@ -304,7 +303,7 @@ def inference_data(problem: Problem, draws: Draws, model: np.ndarray):
     az = import_arviz()
 
     mean, sd = problem.data()
-    noise = np.random.default_rng(draws.u.shape[1] + 1).normal(size=model.shape) * sd
+    noisy = problem.with_noise(model, np.random.default_rng(draws.u.shape[1] + 1).normal(size=model.shape))
     coords = {"observation": observation_labels(problem)}
     dims = {"y": ["observation"], "model": ["observation"], "sd": ["observation"]}
     idata = az.from_dict(
@@ -312,7 +311,7 @@ def inference_data(problem: Problem, draws: Draws, model: np.ndarray):
         sample_stats={"diverging": draws.diverging, "lp": draws.log_density, "acceptance_rate": draws.acceptance_rate,
                       "n_steps": draws.leapfrog_steps,
                       "step_size": np.repeat(draws.step_size[:, None], draws.u.shape[1], axis=1)},
-        posterior_predictive={"y": model + noise, "model": model},
+        posterior_predictive={"y": noisy, "model": model},
         observed_data={"y": mean},
         constant_data={"sd": sd},
         coords=coords, dims=dims,
@@ -369,7 +368,7 @@ def predictive_check(problem: Problem, model_draws: np.ndarray, level: float = 0
     mean, sd = problem.data()
     rng = np.random.default_rng(1)
     flat = model_draws.reshape(-1, model_draws.shape[-1])
-    y = flat + rng.normal(size=flat.shape) * sd
+    y = problem.with_noise(flat, rng.normal(size=flat.shape))
     lo, hi = np.quantile(y, [(1 - level) / 2, (1 + level) / 2], axis=0)
     return [{"observation": label, "data": float(m), "lower": float(a), "upper": float(b), "inside": bool(a <= m <= b)}
             for label, m, a, b in zip(observation_labels(problem), mean, lo, hi)]
