@@ -529,7 +529,8 @@ def cmd_calibrate(args) -> int:
 
 
 def _is_petab(path) -> bool:
-    return str(path).lower().endswith((".yaml", ".yml"))
+    """A PEtab problem: a YAML file, or a folder holding problem.yaml."""
+    return str(path).lower().endswith((".yaml", ".yml")) or os.path.isdir(path)
 
 
 def _export_petab(args, overrides) -> int:

@@ -44,9 +44,10 @@ def same_problem(a: cal.Problem, b: cal.Problem):
 
 
 def test_shipped_problem_passes_the_linter_and_is_the_toml_problem(capsys):
-    assert main(["lint", str(SHIPPED)]) == 0
-    out = capsys.readouterr().out
-    assert out.count("\n") == 1 and "valid PEtab v2 problem for jaxtissue (8 measurements, 2 experiments, 5 estimated" in out
+    for path in (SHIPPED, SHIPPED.parent):  # the YAML file or its folder
+        assert main(["lint", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert out.count("\n") == 1 and "valid PEtab v2 problem for jaxtissue (8 measurements, 2 experiments, 5 estimated" in out
     same_problem(petab_problems.read(SHIPPED), cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml"))
 
 
@@ -92,7 +93,9 @@ def test_broken_copies_fail_the_linter_with_its_message(tmp_path, capsys, case):
 def test_unreadable_problems_are_one_line(tmp_path, capsys):
     (tmp_path / "bad.yaml").write_text("format_version: 2.0.0\nmodel_files: {m: {location: x.xml, language: sbml}}\n")
     for path, message in ((tmp_path / "none.yaml", "no such PEtab problem file"),
-                          (tmp_path / "bad.yaml", "must have location: FILE.toml and language: jaxtissue")):
+                          (tmp_path / "bad.yaml", "must have location: FILE.toml and language: jaxtissue"),
+                          (ROOT / "calibrate" / "engelmayr2005.toml", "a TOML file, not a PEtab YAML problem; `jaxtissue calibrate"),
+                          (tmp_path, "a folder without problem.yaml")):
         assert main(["lint", str(path)]) == 2
         out = capsys.readouterr().out
         assert out.count("\n") == 1 and message in out

@@ -138,6 +138,13 @@ def load(path) -> PetabProblem:
     among its validation tasks. A file that cannot be read is an `InputError`."""
     path = pathlib.Path(path)
     where = str(path)
+    if path.is_dir():
+        if not (path / "problem.yaml").is_file():
+            raise InputError(f"{where}: a folder without problem.yaml; give the PEtab problem's YAML file")
+        path = path / "problem.yaml"
+    if path.suffix.lower() == ".toml":
+        raise InputError(f"{where}: a TOML file, not a PEtab YAML problem; `jaxtissue calibrate {where} --export-petab DIR` "
+                         "converts a TOML calibration problem")
     try:
         config = load_yaml(path)
     except FileNotFoundError:
