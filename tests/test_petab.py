@@ -92,10 +92,16 @@ def test_broken_copies_fail_the_linter_with_its_message(tmp_path, capsys, case):
 
 def test_unreadable_problems_are_one_line(tmp_path, capsys):
     (tmp_path / "bad.yaml").write_text("format_version: 2.0.0\nmodel_files: {m: {location: x.xml, language: sbml}}\n")
+    shutil.copytree(SHIPPED.parent, tmp_path / "p")
+    text = SHIPPED.read_text()
+    (tmp_path / "p" / "no_version.yaml").write_text(text.replace("format_version: 2.0.0\n", ""))
+    (tmp_path / "p" / "no_table.yaml").write_text(text.replace("[parameters.tsv]", "[nothere.tsv]"))
     for path, message in ((tmp_path / "none.yaml", "no such PEtab problem file"),
                           (tmp_path / "bad.yaml", "must have location: FILE.toml and language: jaxtissue"),
                           (ROOT / "calibrate" / "engelmayr2005.toml", "a TOML file, not a PEtab YAML problem; `jaxtissue calibrate"),
-                          (tmp_path, "a folder without problem.yaml")):
+                          (tmp_path, "a folder without problem.yaml"),
+                          (tmp_path / "p" / "no_version.yaml", "ERROR: 'format_version' is a required property"),
+                          (tmp_path / "p" / "no_table.yaml", "No such file or directory")):
         assert main(["lint", str(path)]) == 2
         out = capsys.readouterr().out
         assert out.count("\n") == 1 and message in out

@@ -182,7 +182,8 @@ def _one_line(err: Exception) -> str:
             return "; ".join(f"{where}: {' '.join(map(str, e.get('loc', ())))}: {e.get('msg')}" for e in errors())
         except Exception:  # noqa: BLE001
             pass
-    text = " ".join(str(err).split())
+    message = getattr(err, "message", None)  # jsonschema's, without the schema it quotes
+    text = " ".join((message if isinstance(message, str) else str(err)).split())
     return f"{type(err).__name__}: {text}" if isinstance(err, KeyError) else text
 
 
