@@ -8,12 +8,16 @@ import subprocess
 import sys
 import time
 
+import jax
 import numpy as np
 import xarray as xr
 
 import jaxtissue as jt
 from jaxtissue.studies.checkpoint import segment_edges, simulate_checkpointed
 from jaxtissue.cli import main
+from jaxtissue.protocol import save_times
+
+JAXPR_TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # JAX's monitoring event of a new trace
 
 RUN = ["simulate", "--t-end", "1.2e5", "--grid", "1", "8", "--checkpoint-every", "1", "--no-progress"]
 
@@ -30,6 +34,24 @@ def test_segments_agree_with_one_run_to_solver_tolerance(tmp_path):
     assert parts.ts == whole.ts and len(list((tmp_path / "k").glob("segment_*.npz"))) == 3
     np.testing.assert_allclose(parts.collagen_mg_per_g, whole.collagen_mg_per_g, rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(parts.final.o, whole.final.o, rtol=1e-4)
+
+
+def test_segments_of_a_time_invariant_protocol_share_one_program(tmp_path):
+    """Six segments, traced twice: the first (from the seeded state) and one program
+    for the five after it, solved from t = 0 and moved to their times."""
+    traced = []
+
+    def listen(event, duration, **kwargs):
+        if event == JAXPR_TRACE_EVENT and kwargs.get("fun_name") == "_simulate":
+            traced.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        r = simulate_checkpointed(jt.paper_parameters(), jt.Protocol.static(), 1.2e5, jt.Grid(1, 7), tmp_path / "k", 1)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert len(list((tmp_path / "k").glob("segment_*.npz"))) == 6 and len(traced) <= 2
+    assert r.ts == tuple(save_times(1.2e5, jt.COUPLING_INTERVAL_S).tolist())
 
 
 def test_killed_run_resumes_to_the_same_bits(tmp_path):
