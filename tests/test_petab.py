@@ -225,3 +225,16 @@ def test_petab_and_toml_problems_reach_the_same_chi2(tmp_path, capsys):
         assert main(["calibrate", str(path), "--no-profiles", "--out", str(tmp_path / name)]) == 0
         chi2[name] = json.loads((tmp_path / name / "summary.json").read_text())["chi2"]
     assert math.isfinite(chi2["toml"]) and chi2["petab"] == pytest.approx(chi2["toml"], rel=1e-6)
+
+
+def test_normal_noise_values_never_pass_through_exp():
+    """Large residuals of normal-noise data (a poor posterior draw) give no overflow
+    warning from the log-normal branch."""
+    problem = cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml")
+    r = np.full(len(problem.observations), 50.0)
+    with np.errstate(over="raise", invalid="raise"):
+        model = problem.model_from_residuals(r)
+        noisy = problem.with_noise(model, r)
+    mean, sd = problem.data()
+    np.testing.assert_allclose(model, mean + 50 * sd)
+    np.testing.assert_allclose(noisy, model + 50 * sd)

@@ -181,13 +181,15 @@ class Problem:
     def model_from_residuals(self, r) -> np.ndarray:
         """The model values whose residuals are r (last axis: the observations)."""
         mean, sd = self.data()
-        return np.where(self.log_normal(), mean * np.exp(sd * np.asarray(r)), mean + sd * np.asarray(r))
+        log, z = self.log_normal(), sd * np.asarray(r)
+        return np.where(log, mean * np.exp(np.where(log, z, 0.0)), mean + z)
 
     def with_noise(self, model, z):
         """Model values plus measurement noise with standard normal draws z (broadcast
         against `model`, last axis: the observations)."""
         _, sd = self.data()
-        return np.where(self.log_normal(), model * np.exp(sd * z), model + sd * z)
+        log, noise = self.log_normal(), sd * np.asarray(z)
+        return np.where(log, model * np.exp(np.where(log, noise, 0.0)), model + noise)
 
 
 # ---------------------------------------------------------------------------------------
