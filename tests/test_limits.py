@@ -156,8 +156,10 @@ def test_sigint_ends_a_run_at_once_and_a_second_writer_is_refused(tmp_path, caps
     # still going when SIGINT arrives however fast the machine
     cmd = [sys.executable, "-m", "jaxtissue.cli", "simulate", "--regime", "flex", "--grid", "50", "40", "--t-end", "2e7",
            "--save", "end", "--progress", "--out", str(out)]
-    with open(log, "w") as stderr:
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True)
+    with open(log, "w") as stderr:  # SIGINT as a terminal delivers it: a test runner's worker may ignore SIGINT,
+        # and a child started from it would inherit that (as a shell's background jobs do)
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         wait_for(lambda: (tmp_path / ".r.lock").exists(), proc, 120, "lock")
         assert main(["simulate", "--out", str(out)]) == 2
