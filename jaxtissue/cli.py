@@ -778,7 +778,7 @@ def _interruptible(run, args) -> int:
         from .io import release_outputs
 
         name, code = ("SIGINT", 130) if isinstance(err, KeyboardInterrupt) else ("SIGTERM", 143)
-        release_outputs()
+        release_outputs(ending=True)
         kept = _kept_checkpoint(args)
         bars = "tqdm" in sys.modules and len(getattr(sys.modules["tqdm"].tqdm, "_instances", ())) > 0
         print(f"{chr(10) if bars else ''}jaxtissue: interrupted by {name}; no output was written{kept}", file=sys.stderr, flush=True)

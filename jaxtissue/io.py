@@ -31,6 +31,18 @@ class RunError(RuntimeError):
 _LOCKS: dict[pathlib.Path, int] = {}  # lock file -> its open descriptor, while this process writes there
 _PARTIAL: set[pathlib.Path] = set()  # temporary output folders and files not yet renamed into place
 _COMMIT = threading.Lock()  # renaming a finished folder into place, or discarding the partial ones
+_ENDING: list[bool] = []  # set by `release_outputs(ending=True)`: the process is ending, no new partial output
+
+
+def _new_partial(make):
+    """`make()` a temporary file or folder (returns (its path, anything)) and register it
+    as partial, unless the process is ending (then nothing is made: `RunError`)."""
+    with _COMMIT:
+        if _ENDING:
+            raise RunError("interrupted")
+        path, extra = make()
+        _PARTIAL.add(pathlib.Path(path))
+        return pathlib.Path(path), extra
 
 
 def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
@@ -146,8 +158,7 @@ def atomic_write_text(path, text: str) -> None:
 def atomic_write(path, write) -> None:
     """`write(binary file)` into a temporary file in the same folder, then rename."""
     path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    _PARTIAL.add(pathlib.Path(tmp))
+    tmp, fd = _new_partial(lambda: tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")[::-1])
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -202,10 +213,13 @@ def lock_output(out, argument: str = "out") -> None:
     _LOCKS[lock] = fd
 
 
-def release_outputs() -> None:
+def release_outputs(ending: bool = False) -> None:
     """Remove the temporary folders of unfinished outputs and release the locks
-    (`lock_output`): what an interrupted command leaves is what it had before."""
+    (`lock_output`): what an interrupted command leaves is what it had before.
+    `ending`: the process ends now; other threads make no new partial output."""
     with _COMMIT:
+        if ending:
+            _ENDING.append(True)
         for tmp in list(_PARTIAL):
             if tmp.is_dir():
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -227,8 +241,7 @@ def output_folder(out, overwrite: bool = False, argument: str = "out"):
 
     If anything fails, the temporary folder is removed and `out` is untouched."""
     out = check_output_folder(out, overwrite, argument)  # (and claims it, `lock_output`)
-    tmp = pathlib.Path(tempfile.mkdtemp(dir=out.resolve().parent, prefix=f".{out.name}.partial-"))
-    _PARTIAL.add(tmp)
+    tmp, _ = _new_partial(lambda: (tempfile.mkdtemp(dir=out.resolve().parent, prefix=f".{out.name}.partial-"), None))
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
