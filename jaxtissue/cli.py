@@ -482,12 +482,13 @@ def cmd_calibrate(args) -> int:
     if _is_petab(args.problem):
         from .studies import petab_problems
 
-        messages = petab_problems.errors(petab_problems.lint(args.problem))
+        messages, loaded = petab_problems.check(args.problem)
+        messages = petab_problems.errors(messages)
         for m in messages:
             print(f"jaxtissue: error: {args.problem}: {m.split(': ', 1)[1]}", file=sys.stderr)
         if messages:
             return 2
-        problem = petab_problems.to_problem(petab_problems.load(args.problem))
+        problem = petab_problems.to_problem(loaded)
         problem = dataclasses.replace(problem, fit=dataclasses.replace(problem.fit, **overrides))
     else:
         problem = calibration.read_problem(args.problem, overrides)
@@ -549,12 +550,12 @@ def _export_petab(args, overrides) -> int:
 def cmd_lint(args) -> int:
     from .studies import petab_problems
 
-    messages = petab_problems.lint(args.problem)
+    messages, loaded = petab_problems.check(args.problem)
     for m in messages:
         print(f"{args.problem}: {m}")
     if petab_problems.errors(messages):
         return 2
-    problem = petab_problems.to_problem(petab_problems.load(args.problem))
+    problem = petab_problems.to_problem(loaded)
     print(f"{args.problem}: valid PEtab v2 problem for jaxtissue ({len(problem.observations)} measurements, "
           f"{len(problem.conditions)} experiments, {len(problem.free)} estimated parameters)")
     return 0

@@ -172,17 +172,14 @@ class Problem:
     def residuals_of(self, model) -> jax.Array:
         """The residuals of given model values (last axis: the observations)."""
         mean, sd = self.data()
-        model = jnp.asarray(model)
-        if not self.log_normal().any():
+        model, log = jnp.asarray(model), self.log_normal()
+        if not log.any():  # no log terms in the compiled residuals
             return (model - mean) / sd
-        log = self.log_normal()
         return jnp.where(log, jnp.log(jnp.where(log, model, 1.0)) - np.log(np.where(log, mean, 1.0)), model - mean) / sd
 
     def model_from_residuals(self, r) -> np.ndarray:
         """The model values whose residuals are r (last axis: the observations)."""
-        mean, sd = self.data()
-        log, z = self.log_normal(), sd * np.asarray(r)
-        return np.where(log, mean * np.exp(np.where(log, z, 0.0)), mean + z)
+        return self.with_noise(self.data()[0], r)
 
     def with_noise(self, model, z):
         """Model values plus measurement noise with standard normal draws z (broadcast
@@ -225,7 +222,6 @@ class FitResult(NamedTuple):
 def _compiled(problem: Problem, jacobian: bool):
     """The problem's jitted residuals or their forward-mode Jacobian (cached)."""
     return jax.jit(jax.jacfwd(problem.residuals) if jacobian else problem.residuals)
-
 
 
 @functools.lru_cache(maxsize=8)

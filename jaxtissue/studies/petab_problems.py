@@ -29,6 +29,7 @@ PEtab files. The `petab` library is imported with this module (a few seconds).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pathlib
 import warnings
@@ -82,8 +83,8 @@ class JaxtissueModel(Model):
     def to_file(self, filename=None):
         lines = ["# A jaxtissue model (docs/model.md): the resolution its fit simulates at and the fit's settings.",
                  f"name = {self.name!r}".replace("'", '"'), "", "[model]"]
-        lines += [f"{k} = {_toml(v)}" for k, v in _fields(self.model).items()]
-        lines += ["", "[fit]"] + [f"{k} = {_toml(v)}" for k, v in _fields(self.fit).items()]
+        lines += [f"{k} = {_toml(v)}" for k, v in dataclasses.asdict(self.model).items()]
+        lines += ["", "[fit]"] + [f"{k} = {_toml(v)}" for k, v in dataclasses.asdict(self.fit).items()]
         io.atomic_write_text(filename, "\n".join(lines) + "\n")
 
     @property
@@ -118,10 +119,6 @@ class JaxtissueModel(Model):
 
     def is_state_variable(self, id_: str) -> bool:
         return False
-
-
-def _fields(settings_object) -> dict:
-    return {k: getattr(settings_object, k) for k in settings_object.__dataclass_fields__}
 
 
 def _toml(value) -> str:
@@ -187,15 +184,22 @@ def _one_line(err: Exception) -> str:
     return f"{type(err).__name__}: {text}" if isinstance(err, KeyError) else text
 
 
-def lint(path) -> list[str]:
-    """The PEtab linter's messages (`LEVEL: message`, one per line), jaxtissue's checks
-    included; [] for a clean problem. A file that cannot be read at all gives its one
-    message."""
+def check(path) -> tuple[list[str], PetabProblem | None]:
+    """(the PEtab linter's messages, `LEVEL: message` one per line with jaxtissue's checks
+    included, and the loaded problem); a file that cannot be read at all gives its one
+    message and None."""
     try:
         problem = load(path)
     except InputError as err:
-        return [f"ERROR: {str(err).removeprefix(f'{path}: ')}"]
-    return [f"{issue.level.name}: {line}" for issue in problem.validate() for line in str(issue.message).splitlines() if line.strip()]
+        return [f"ERROR: {str(err).removeprefix(f'{path}: ')}"], None
+    messages = [f"{issue.level.name}: {line}" for issue in problem.validate() for line in str(issue.message).splitlines()
+                if line.strip()]
+    return messages, problem
+
+
+def lint(path) -> list[str]:
+    """The messages of `check`; [] for a clean problem."""
+    return check(path)[0]
 
 
 def errors(messages: list[str]) -> list[str]:
@@ -206,12 +210,13 @@ def errors(messages: list[str]) -> list[str]:
 
 def read(path) -> Problem:
     """A `calibration.Problem` from a PEtab v2 file; an `InputError` with the linter's
-    messages if the problem has errors."""
-    messages = errors(lint(path))
+    first error if the problem has errors."""
+    messages, problem = check(path)
+    messages = errors(messages)
     if messages:
         more = f" (and {len(messages) - 1} more)" if len(messages) > 1 else ""
         raise InputError(f"{path}: {messages[0].split(': ', 1)[1]}{more}; `jaxtissue lint {path}` lists every message")
-    return to_problem(load(path))
+    return to_problem(problem)
 
 
 def _observables(problem: PetabProblem) -> dict:
