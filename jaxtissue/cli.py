@@ -564,7 +564,7 @@ def cmd_lint(args) -> int:
 def cmd_predict(args) -> int:
     from tqdm.auto import tqdm
 
-    from . import io, plots
+    from . import io, limits, plots
     from .protocol import Protocol
     from .result import SCALARS
     from .studies import posterior
@@ -586,7 +586,7 @@ def cmd_predict(args) -> int:
            for k in shown}
     summary = {"posterior": str(args.posterior), "regime": args.regime, "t_end_s": args.t_end, "draws": int(ds.sizes["draw"]),
                "failed_draws": int(ds["failed"].values.sum()), "at_t_end": end,
-               "model": dataclasses.asdict(saved.model)}
+               "model": dataclasses.asdict(saved.model), "warnings": limits.extrapolation(None, protocol, args.t_end)}
     title = f"{args.regime}" + (f", T = {args.period:g} s, {args.post_displacement:g} mm" if args.regime == "flex" else "") + \
         f": posterior predictive of {summary['draws']} draws (data: condition '{condition}')"
     with io.output_folder(args.out, args.overwrite) as tmp:

@@ -177,6 +177,17 @@ def test_reproduction_on_small_grids(tmp_path):
     rep.mkdir()
     jt.reproduce.write(results, p, rep)
     _check_reproduction(rep)
+    assert json.loads((rep / "summary.json").read_text())["warnings"] == [] and "## Warnings" not in (rep / "report.md").read_text()
+
+
+def test_reproduction_records_what_extrapolates():
+    """summary.json's and the report's warnings: one line per value outside its supported range."""
+    import types
+
+    results = {"static": types.SimpleNamespace(ts=(0.0, 1.0e6)), "flex": types.SimpleNamespace(ts=(0.0, 2.5e6))}
+    lines = jt.reproduce.extrapolations(results, jt.paper_parameters().replace(thickness_mm=3.0))
+    assert len(lines) == 2 and lines[0].startswith("thickness_mm = 3 mm is outside") and lines[1].startswith("t_end_s = 2.5e+06 s")
+    assert jt.reproduce.extrapolations(results | {"flex": types.SimpleNamespace(ts=(0.0, 2.0e6))}, jt.paper_parameters()) == []
 
 
 @pytest.mark.slow

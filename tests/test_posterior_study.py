@@ -140,7 +140,7 @@ def test_predict_command_gives_bands_that_hold_the_draws(sampled, capsys):
     np.testing.assert_allclose(ds["collagen_mg_per_g_q50"].values, np.median(c, axis=0))
     assert not ds["failed"].values.any() and np.ptp(c[:, -1]) > 0  # the draws differ, so does their collagen
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["draws"] == 6 and "collagen_mg_per_g" in summary["at_t_end"]
+    assert summary["draws"] == 6 and "collagen_mg_per_g" in summary["at_t_end"] and summary["warnings"] == []
     assert (out / "bands.png").is_file()
 
 

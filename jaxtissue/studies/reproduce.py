@@ -8,7 +8,7 @@ import pathlib
 
 import numpy as np
 
-from .. import io, plots
+from .. import io, limits, plots
 from ..beam import BeamGrid
 from ..data import observations
 from ..protocol import T_END_S, THREE_WEEKS_S, Protocol
@@ -81,6 +81,15 @@ def _when(result) -> str | None:
     return None if abs(t - THREE_WEEKS_S) < 1.0 else f"t = {t:g} s"
 
 
+def extrapolations(results: dict, params) -> list[str]:
+    """One line for each value of the cases (`params`, protocols, end time) outside its
+    supported range (`limits.extrapolation`): `summary.json`'s and the report's warnings."""
+    lines = limits.extrapolation(params, None, max(r.ts[-1] for r in results.values()))
+    for protocol in CASES.values():
+        lines += limits.extrapolation(None, protocol)
+    return list(dict.fromkeys(lines))
+
+
 def write(results: dict, params, folder, bands: dict | None = None) -> None:
     """Figures, per-case NetCDF files, summary.json and report.md into `folder`;
     `bands` (`calibrated_bands`) add the calibrated model to Figs 9 and 10."""
@@ -95,6 +104,7 @@ def write(results: dict, params, folder, bands: dict | None = None) -> None:
         io.write_netcdf(r.to_xarray(), folder / "cases" / f"{name}.nc")
     summary = {name: three_week(r) for name, r in results.items()}
     summary["params"] = params.as_dict()
+    summary["warnings"] = extrapolations(results, params)
     if bands:
         summary["calibrated"] = {name: {k: {"q05": float(b[k][0][-1]), "q50": float(b[k][1][-1]), "q95": float(b[k][2][-1])} for k in KEYS}
                                  for name, b in bands.items()}
@@ -180,4 +190,7 @@ def report(results: dict, params, bands: dict | None = None) -> str:
         "`fig9_contents.png`, `fig10_rigidity_force.png`; per-case results in `cases/*.nc`.",
     ]
     lines += _calibrated_lines(bands)
+    warned = extrapolations(results, params)
+    if warned:
+        lines += ["", "## Warnings", ""] + [f"* {line}" for line in warned]
     return "\n".join(lines) + "\n"
