@@ -8,6 +8,11 @@ The folder is `$XDG_CACHE_HOME/jaxtissue` (default `~/.cache/jaxtissue`);
 (`JAX_COMPILATION_CACHE_DIR`) is used as it is. A folder that cannot be made or written costs a
 warning, never a failure, and so does an unreadable entry (JAX recompiles). Programs
 with host callbacks (progress bars fed from inside a run) are never cached.
+
+`use_fast_compilation()` (also the command line's) has XLA compile CPU programs with
+its classic fusion emitter, which for jaxtissue's programs compiles ~30–40 % faster with
+the same run time and results equal to round-off; `JAXTISSUE_XLA_DEFAULTS=1` keeps XLA's
+defaults.
 """
 
 from __future__ import annotations
@@ -21,6 +26,47 @@ import jax
 
 MAX_SIZE_BYTES = 2 * 1024**3
 """The folder's size limit; least recently used entries go first."""
+
+
+FAST_COMPILATION_FLAG = "--xla_cpu_use_fusion_emitters=false"
+"""The XLA setting of `use_fast_compilation`."""
+
+
+def use_fast_compilation() -> bool:
+    """Add `FAST_COMPILATION_FLAG` to `XLA_FLAGS` (docs/numerics.md, "Compilation").
+
+    Only before JAX starts its backends, only where this jaxlib has the flag (XLA
+    aborts on a flag it does not know), never over a value of it already in
+    `XLA_FLAGS`, and not with `JAXTISSUE_XLA_DEFAULTS` set to anything but "" or "0".
+    Returns whether the setting was made."""
+    name = FAST_COMPILATION_FLAG[2:].split("=")[0]
+    flags = os.environ.get("XLA_FLAGS", "")
+    if os.environ.get("JAXTISSUE_XLA_DEFAULTS", "") not in ("", "0") or name in flags:
+        return False
+    try:  # not public API: where it is missing, leave XLA as it is
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        return False
+    if backends_are_initialized() or not _jaxlib_knows(name.encode()):
+        return False
+    os.environ["XLA_FLAGS"] = f"{flags} {FAST_COMPILATION_FLAG}".strip()
+    return True
+
+
+def _jaxlib_knows(flag: bytes) -> bool:
+    """Whether the name of an XLA flag is in jaxlib's libraries (where XLA's flags are)."""
+    import mmap
+
+    import jaxlib
+
+    for library in sorted(pathlib.Path(jaxlib.__file__).parent.glob("*.so"), key=lambda p: -p.stat().st_size):
+        try:
+            with open(library, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+                if m.find(flag) >= 0:
+                    return True
+        except (OSError, ValueError):
+            continue
+    return False
 
 
 def default_folder() -> pathlib.Path | None:

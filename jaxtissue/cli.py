@@ -27,7 +27,7 @@ import warnings
 
 import numpy as np
 
-from .cache import enable_compilation_cache
+from .cache import enable_compilation_cache, use_fast_compilation
 from .grid import DEFAULT_SHAPES
 from .io import InputError, RunError
 from .limits import MAX_STEPS
@@ -710,6 +710,7 @@ def main(argv=None) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
         warnings.simplefilter("always", RuntimeWarning)
+        use_fast_compilation()  # before anything starts JAX's backends
         enable_compilation_cache()  # a second run of the same command loads its programs
         warnings.simplefilter("default", RuntimeWarning)
         try:

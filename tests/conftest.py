@@ -4,8 +4,9 @@ import sys
 import tempfile
 
 # The suite is dominated by compilation: one compilation cache per test run serves every
-# worker and subprocess (the CLI tests). (XLA's backend stays at its default
-# optimisation level: the tests check the programs users run.)
+# worker and subprocess (the CLI tests), and XLA compiles as the command line has it
+# (`jaxtissue.cache.use_fast_compilation`; XLA's optimisation level stays at its
+# default: the tests check the programs users run).
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxtissue-tests-cache-")
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
@@ -19,6 +20,11 @@ jax.config.update("jax_enable_x64", True)
 # tests do: these modules are imported through jaxtyping's hook with beartype
 install_import_hook(["jaxtissue.operators", "jaxtissue.state", "jaxtissue.growth_jacobian", "jaxtissue.numerics._banded"],
                     "beartype.beartype")
+
+# after the hook, since it imports jaxtissue
+from jaxtissue.cache import use_fast_compilation  # noqa: E402
+
+use_fast_compilation()  # in XLA_FLAGS, which the CLI tests' subprocesses inherit
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the independent SciPy reference, shared helpers

@@ -74,3 +74,25 @@ def test_second_run_loads_its_programs_and_survives_a_corrupt_cache(tmp_path):
     first = xr.open_dataset(tmp_path / "first" / "result.nc", engine="h5netcdf")
     second = xr.open_dataset(tmp_path / "second" / "result.nc", engine="h5netcdf")
     assert float(second["collagen_mg_per_g"][-1]) == float(first["collagen_mg_per_g"][-1])
+
+
+def test_fast_compilation_is_set_before_jax_starts_and_never_over_the_users_flags(monkeypatch):
+    """`use_fast_compilation`: in a fresh process it adds its flag, which XLA then accepts
+    (a flag XLA did not know would abort the process); the user's own value of the flag,
+    `JAXTISSUE_XLA_DEFAULTS=1`, or a backend already started leave `XLA_FLAGS` alone."""
+    from jaxtissue.cache import FAST_COMPILATION_FLAG, use_fast_compilation
+
+    code = ("import os; from jaxtissue.cache import use_fast_compilation as u; made = u(); import jax.numpy as jnp; "
+            "print(made, float(jnp.sum(jnp.arange(4.0))), os.environ.get('XLA_FLAGS', ''))")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTISSUE_XLA_DEFAULTS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, check=True).stdout
+    assert out.split() == ["True", "6.0", FAST_COMPILATION_FLAG]
+    env["XLA_FLAGS"] = "--xla_cpu_use_fusion_emitters=true --xla_force_host_platform_device_count=2"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, check=True).stdout
+    assert out.split() == ["False", "6.0", "--xla_cpu_use_fusion_emitters=true", "--xla_force_host_platform_device_count=2"]
+    monkeypatch.setenv("JAXTISSUE_XLA_DEFAULTS", "1")
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert use_fast_compilation() is False and os.environ["XLA_FLAGS"] == ""
+    monkeypatch.delenv("JAXTISSUE_XLA_DEFAULTS")
+    jax.numpy.zeros(1)  # this process's backend has started
+    assert use_fast_compilation() is False and os.environ["XLA_FLAGS"] == ""
