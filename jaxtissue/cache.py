@@ -33,24 +33,32 @@ FAST_COMPILATION_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
 def use_fast_compilation() -> bool:
-    """Add `FAST_COMPILATION_FLAG` to `XLA_FLAGS` (docs/numerics.md, "Compilation").
-
-    Only before JAX starts its backends, only where this jaxlib has the flag (XLA
-    aborts on a flag it does not know), never over a value of it already in
-    `XLA_FLAGS`, and not with `JAXTISSUE_XLA_DEFAULTS` set to anything but "" or "0".
+    """Add `FAST_COMPILATION_FLAG` to `XLA_FLAGS` (docs/numerics.md, "Compilation"), as
+    `add_xla_flag` does, only where this jaxlib has the flag (XLA aborts on a flag it
+    does not know) and not with `JAXTISSUE_XLA_DEFAULTS` set to anything but "" or "0".
     Returns whether the setting was made."""
-    name = FAST_COMPILATION_FLAG[2:].split("=")[0]
-    flags = os.environ.get("XLA_FLAGS", "")
-    if os.environ.get("JAXTISSUE_XLA_DEFAULTS", "") not in ("", "0") or name in flags:
+    if os.environ.get("JAXTISSUE_XLA_DEFAULTS", "") not in ("", "0"):
         return False
+    return _jaxlib_knows(_flag_name(FAST_COMPILATION_FLAG).encode()) and add_xla_flag(FAST_COMPILATION_FLAG)
+
+
+def add_xla_flag(flag: str) -> bool:
+    """Append `flag` ("--name=value") to `XLA_FLAGS`: only before JAX starts its backends
+    (XLA reads the flags then) and never over a value of `name` already there. Returns
+    whether the flag was added."""
     try:  # not public API: where it is missing, leave XLA as it is
         from jax._src.xla_bridge import backends_are_initialized
     except ImportError:
         return False
-    if backends_are_initialized() or not _jaxlib_knows(name.encode()):
+    flags = os.environ.get("XLA_FLAGS", "")
+    if _flag_name(flag) in flags or backends_are_initialized():
         return False
-    os.environ["XLA_FLAGS"] = f"{flags} {FAST_COMPILATION_FLAG}".strip()
+    os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
     return True
+
+
+def _flag_name(flag: str) -> str:
+    return flag.removeprefix("--").split("=")[0]
 
 
 def _jaxlib_knows(flag: bytes) -> bool:

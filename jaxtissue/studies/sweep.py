@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import limits
 from ..beam import BeamGrid
+from ..cache import add_xla_flag
 from ..grid import Grid
 from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
 from ..params import FIELDS, Params, suggest
@@ -192,19 +193,12 @@ def use_all_cores() -> bool:
     """Give JAX one CPU device per core (`--xla_force_host_platform_device_count`), so
     that a sweep's batch is sharded over every core of a CPU-only machine. Works only
     before JAX starts its backends and leaves an explicit device count in `XLA_FLAGS`
-    alone; accelerators are unaffected. Returns whether the setting was made."""
+    alone (`cache.add_xla_flag`); accelerators are unaffected. Returns whether the setting
+    was made."""
     import os
 
-    try:  # not public API: where it is missing, leave the devices as they are
-        from jax._src.xla_bridge import backends_are_initialized
-    except ImportError:
-        return False
-    flags = os.environ.get("XLA_FLAGS", "")
     cores = os.cpu_count() or 1
-    if cores < 2 or "xla_force_host_platform_device_count" in flags or backends_are_initialized():
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={cores}".strip()
-    return True
+    return cores >= 2 and add_xla_flag(f"--xla_force_host_platform_device_count={cores}")
 
 
 def join_processes(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
