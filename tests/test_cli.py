@@ -9,6 +9,7 @@ import pytest
 import xarray as xr
 
 import jaxtissue as jt
+from helpers import SMALL_FLEX
 from jaxtissue.cli import main
 from jaxtissue.io import read_params_toml
 
@@ -172,7 +173,7 @@ def test_reproduction_on_small_grids(tmp_path):
     """The main job's cases, files and report over two growth intervals, on small grids
     (the default grids through the command: the slow test below)."""
     p = jt.paper_parameters()
-    results = jt.reproduce.run_cases(p, t_end_s=4e4, log=lambda _: None, flex_grid=jt.Grid(3, 8), beam=jt.BeamGrid(8, 16))
+    results = jt.reproduce.run_cases(p, t_end_s=SMALL_FLEX["t_end_s"], log=lambda _: None, flex_grid=jt.Grid(*SMALL_FLEX["grid_shape"]))
     rep = tmp_path / "reproduce"
     rep.mkdir()
     jt.reproduce.write(results, p, rep)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import jaxtissue as jt
+from helpers import SMALL_FLEX
 from jaxtissue.beam import BeamGrid
 from jaxtissue.cli import main
 
@@ -54,7 +55,7 @@ def test_post_displacement_is_bounded_by_the_strip_in_the_parameters():
         jt.simulate(jt.paper_parameters(), protocol, 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 16))
     with pytest.raises(ValueError, match=r"post_displacement_mm = -1 must be >= 0 mm"):
         jt.Protocol.flex(post_displacement_mm=-1.0)
-    long = jt.simulate(jt.paper_parameters().replace(length_mm=40.0), protocol, 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 16))
+    long = jt.simulate(jt.paper_parameters().replace(length_mm=40.0), protocol, SMALL_FLEX["t_end_s"], jt.Grid(*SMALL_FLEX["grid_shape"]))
     assert float(long.post_force_max_N[-1]) > 0
 
 

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import pytest
 
 import jaxtissue as jt
-from helpers import wait_for
+from helpers import SMALL_FLEX_ARGS, wait_for
 from jaxtissue import limits
 from jaxtissue.cli import main
 from jaxtissue.coupling import PAPER_RULE_C, with_rule_constant
@@ -115,8 +115,7 @@ def test_the_paper_rule_takes_the_papers_C_unless_C_was_chosen(tmp_path, capsys,
     assert with_rule_constant(chosen, "paper") == (chosen, None)
 
     out = tmp_path / "r"  # through the command: the files say which C and why
-    assert main(["simulate", "--regime", "flex", "--lumping", "paper", "--grid", "2", "6", "--t-end", "2e4", "--no-progress",
-                 "--out", str(out)]) == 0
+    assert main(["simulate", "--regime", "flex", "--lumping", "paper", *SMALL_FLEX_ARGS, "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["lumping"]["C"] == 70.0 and summary["params"]["lumping_C"] == 70.0 and summary["warnings"] == []
     text = (out / "params.toml").read_text()
@@ -137,7 +136,7 @@ def test_an_extrapolating_flex_run_warns_and_records_it(tmp_path, capsys):
     out = tmp_path / "r"
     start = time.perf_counter()
     code = main(["simulate", "--regime", "flex", "--period", "1e-9", "--post-displacement", "24.9",
-                 "--grid", "2", "6", "--t-end", "4e4", "--no-progress", "--out", str(out)])
+                 *SMALL_FLEX_ARGS, "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 0, err
     assert time.perf_counter() - start < 60
