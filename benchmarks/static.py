@@ -10,9 +10,12 @@ is compared:
 * gradient of 3-week collagen with respect to all kinetic parameters: one reverse-mode
   pass versus central finite differences of the SciPy solve (2 solves per parameter),
   each at the loosest tolerance whose gradient is within `GRAD_TARGET` of a tight one;
-* compile time of the jitted forward run.
+* compile time of the jitted forward run;
+* per step: wall time and, alone, the O2 solve's Thomas factor and stage solves.
 
-    python benchmarks/static.py
+    python benchmarks/static.py [--xla-defaults]
+      (--xla-defaults: XLA's default CPU emitters instead of the command line's
+      `jaxtissue.cache.use_fast_compilation`)
 """
 
 from __future__ import annotations
@@ -21,8 +24,13 @@ import pathlib
 import sys
 import time
 
-import jax
-import jax.numpy as jnp
+from jaxtissue.cache import use_fast_compilation
+
+FAST = "--xla-defaults" not in sys.argv and use_fast_compilation()  # as the command line, before JAX starts
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))  # the SciPy reference
 import scipy_reference  # noqa: E402
@@ -57,7 +65,7 @@ def jax_forward(rtol):
     @jax.jit
     def run(p):
         r = jt.simulate(p, t_end_s=T, grid=jt.Grid(ny=NY), options=options)
-        return {k: getattr(r, k)[-1] for k in KEYS}
+        return {k: getattr(r, k)[-1] for k in KEYS} | {"steps": r.num_steps}
 
     return run
 
@@ -65,6 +73,26 @@ def jax_forward(rtol):
 def jax_collagen(rtol):
     options = jt.SolverOptions(rtol=rtol, atol=rtol * 1e-3)
     return lambda p: jt.simulate(p, t_end_s=T, grid=jt.Grid(ny=NY), options=options).collagen_mg_per_g[-1]
+
+
+def thomas_solve_seconds(repeats=1000):
+    """A step's O2 solve alone: the Thomas factor of a 200-row tridiagonal system and
+    the 4 stage solves with it, `repeats` times in one jitted loop (seconds each)."""
+    from jaxtissue.numerics import thomas_factor, thomas_solve
+
+    rng = np.random.default_rng(0)
+    sub, sup = (jnp.asarray(-rng.random((1, NY))) for _ in range(2))
+    diag, r0 = jnp.asarray(3.0 + rng.random((1, NY))), jnp.asarray(rng.random((1, NY)))
+
+    def step(_, r):
+        factor = thomas_factor(sub, diag, sup)
+        for _ in range(4):
+            r = thomas_solve(factor, r) + r0
+        return 0.5 * r
+
+    loop = jax.jit(lambda r: jax.lax.fori_loop(0, repeats, step, r))
+    jax.block_until_ready(loop(r0))
+    return best_time(lambda: jax.block_until_ready(loop(r0)), 3) / repeats
 
 
 def scipy_values(rtol, **changes):
@@ -100,16 +128,18 @@ def main():
     compile_s = time.perf_counter() - t0 - best_time(lambda: jax.block_until_ready(run(p)), 3)
 
     # ---- forward: work-precision ladders of both, then the fastest run at each target
-    jax_runs, sp_runs = [], []
+    jax_runs, sp_runs, steps = [], [], []
     for rtol in LADDER:
         run = jax_forward(rtol)
         values = {k: float(v) for k, v in run(p).items()}
         jax_runs.append((rel_err(values, reference), best_time(lambda: jax.block_until_ready(run(p)), 10), rtol))
+        steps.append(int(values["steps"]))
         sp_runs.append((rel_err(scipy_values(rtol), reference), best_time(lambda: scipy_values(rtol), 3), rtol))
     print("\nwork-precision (max rel. error of the 3-week values, best time)")
-    print(f"{'rtol':>8} | {'jaxtissue err':>13} {'ms':>8} | {'SciPy BDF err':>13} {'ms':>8}")
-    for (je, jt_, r), (se, st, _) in zip(jax_runs, sp_runs):
-        print(f"{r:8.0e} | {je:13.1e} {jt_ * 1e3:8.2f} | {se:13.1e} {st * 1e3:8.2f}")
+    print(f"{'rtol':>8} | {'jaxtissue err':>13} {'ms':>8} {'steps':>6} {'us/step':>8} | {'SciPy BDF err':>13} {'ms':>8}")
+    for (je, jt_, r), (se, st, _), n in zip(jax_runs, sp_runs, steps):
+        print(f"{r:8.0e} | {je:13.1e} {jt_ * 1e3:8.2f} {n:6d} {jt_ / n * 1e6:8.1f} | {se:13.1e} {st * 1e3:8.2f}")
+    print(f"of a step: the O2 solve's Thomas factor and 4 solves alone {thomas_solve_seconds() * 1e6:.1f} us")
     print("\nfastest run reaching each accuracy target")
     for target in TARGETS:
         t_jax = min((t for e, t, _ in jax_runs if e <= target), default=float("nan"))
