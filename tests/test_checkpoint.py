@@ -19,7 +19,7 @@ from jaxtissue.protocol import save_times
 
 JAXPR_TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # JAX's monitoring event of a new trace
 
-# 40 segments of ~10 ms each once compiled: the killed run cannot finish before the signal lands
+# 40 segments of ~13 ms each once compiled: the killed run cannot finish before the signal lands
 RUN = ["simulate", "--t-end", "8e5", "--grid", "1", "8", "--checkpoint-every", "1", "--no-progress"]
 
 

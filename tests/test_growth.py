@@ -167,7 +167,7 @@ def test_cell_flux_is_dropped_only_when_known_to_be_zero():
     assert seen == [True]
     plain = jt.simulate(p, t_end_s=1.0e5, grid=jt.Grid(ny=8)).collagen_mg_per_g
     np.testing.assert_allclose(plain, traced, rtol=1e-10)  # round-off through adaptive steps
-    # the derivative through the kept flux at D_c = 0 is finite (forward mode: the flux's
-    # local derivatives are those reverse mode transposes, in a program a third the size)
+    # the derivative through the kept flux at D_c = 0 is finite (in forward mode: the same
+    # local derivatives that reverse mode transposes, without compiling a reverse pass)
     forward = jt.SolverOptions(autodiff="forward")
     assert np.isfinite(float(jax.jacfwd(lambda d: collagen(d, forward)[-1])(0.0))) and seen == [True, True]
