@@ -26,7 +26,8 @@ import time
 
 from jaxtissue.cache import use_fast_compilation
 
-FAST = "--xla-defaults" not in sys.argv and use_fast_compilation()  # as the command line, before JAX starts
+if "--xla-defaults" not in sys.argv:
+    use_fast_compilation()  # as the command line, before JAX starts
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

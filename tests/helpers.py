@@ -33,14 +33,14 @@ coupling_interval_s = 604800.0
 """The [model] table of the small flex problems of the calibration and optimisation tests."""
 
 
-SMALL_FLEX_ARGS = ["--grid", "2", "6", "--t-end", "4e4", "--no-progress"]
-"""A short flex run on a small growth grid (default beam) through the command line. Tests
-that run flex through `simulate`, `reproduce` and the command use this one
-configuration (`SMALL_FLEX`), so that they share one compiled program through the
-test run's compilation cache."""
-
 SMALL_FLEX = dict(t_end_s=4e4, grid_shape=(2, 6))
-"""`SMALL_FLEX_ARGS` as `simulate` arguments: `t_end_s` and the `Grid` shape."""
+"""A short flex run on a small growth grid (default beam): `t_end_s` and the `Grid`
+shape. Tests that run flex through `simulate`, `reproduce` and the command use this one
+configuration, so that they share one compiled program through the test run's
+compilation cache."""
+
+SMALL_FLEX_ARGS = ["--grid", *map(str, SMALL_FLEX["grid_shape"]), "--t-end", repr(SMALL_FLEX["t_end_s"]), "--no-progress"]
+"""`SMALL_FLEX` as command-line arguments."""
 
 
 def wait_for(condition, proc, seconds, what):
