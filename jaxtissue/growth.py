@@ -125,7 +125,7 @@ class GrowthModel(AbstractStructuredField):
         `for_jacobian()` and held constant under differentiation (a W-method keeps its
         order for any J̃: no second derivatives)."""
         _, jvp = jax.linearize(lambda z: self.for_jacobian()(t, z, args), y)
-        jac = jax.lax.stop_gradient(GrowthJacobian.probe(jvp, self.grid.shape))
+        jac = jax.lax.stop_gradient(GrowthJacobian.probe(jvp, self.grid.shape, pointwise_c=not self.cell_transport))
         return jac.factor(a, self.o2_sweeps)
 
     def cell_flux_divergence(self, o, c) -> Field:

@@ -5,7 +5,8 @@ The growth right-hand side (docs/model.md §2) couples o to its four neighbours
 (diffusion, advection) and the three species only pointwise, so:
 
 1. **Probe** J with a few coloured JVPs (`numerics.colouring`: 3 colours in 1-D, 5 in
-   2-D) instead of one JVP per unknown.
+   2-D) instead of one JVP per unknown; c's columns with one JVP where c couples only
+   pointwise (no cell flux: D_c = χ = 0).
 2. **Eliminate** c and m pointwise (a Schur complement): what is left is a 5-point
    operator on o alone.
 3. **Solve** it with `numerics.FivePoint` (Thomas in 1-D; line relaxation or
@@ -21,6 +22,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 
 from ._custom_types import Field
@@ -50,8 +52,10 @@ class GrowthJacobian(eqx.Module):
     mm: Field
 
     @classmethod
-    def probe(cls, jvp, shape) -> "GrowthJacobian":
-        """Build J̃ from `jvp(State) -> State` with 2K + 1 JVPs (K colours)."""
+    def probe(cls, jvp, shape, pointwise_c: bool = False) -> "GrowthJacobian":
+        """Build J̃ from `jvp(State) -> State` with 2K + 1 JVPs (K colours), or K + 2
+        with `pointwise_c` (the caller's promise that c's columns have no entries off
+        the diagonal blocks, as without a cell flux: one JVP finds them exactly)."""
         nx, ny = shape
         col = colouring(nx, ny)
         ncol = int(col.max()) + 1
@@ -63,8 +67,12 @@ class GrowthJacobian(eqx.Module):
         # batched, faster on a column of cells.
         batched = jax.vmap(jvp) if nx == 1 else (lambda t: jax.lax.map(jvp, t))
         r_o = batched(State(o=masks, c=zeros, m=zeros))  # columns of J for o
-        r_c = batched(State(o=zeros, c=masks, m=zeros))  # columns of J for c
-        r_m = jvp(State(o=zeros[0], c=zeros[0], m=jnp.ones(shape)))  # m is pointwise
+        ones, zero = jnp.ones(shape), zeros[0]
+        if pointwise_c:  # all of c's columns at once: their sum is the blocks
+            r_c = jvp(State(o=zero, c=ones, m=zero))
+        else:  # c's columns, one colour each
+            r_c = jtu.tree_map(lambda x: _pick(x, col), batched(State(o=zeros, c=masks, m=zeros)))
+        r_m = jvp(State(o=zero, c=zero, m=ones))  # m is pointwise
         nbr = neighbour_colours(col)
         oo = {
             name: jnp.where(mask, _pick(r_o.o, colours), 0.0)
@@ -76,11 +84,11 @@ class GrowthJacobian(eqx.Module):
             oo_north=oo["north"],
             oo_west=oo["west"],
             oo_east=oo["east"],
-            oc=_pick(r_c.o, col),
+            oc=r_c.o,
             co=_pick(r_o.c, col),
-            cc=_pick(r_c.c, col),
+            cc=r_c.c,
             mo=_pick(r_o.m, col),
-            mc=_pick(r_c.m, col),
+            mc=r_c.m,
             mm=r_m.m,
         )
 
