@@ -411,15 +411,15 @@ def run(cal, settings: SamplerSettings = SamplerSettings(), progress: bool = Fal
     problem = cal.problem
     with tqdm(total=settings.warmup + settings.samples, desc="posterior: NUTS", unit="draw", disable=not progress) as bar:
         draws = sample(problem, cal.fit.t, cal.fit.jacobian, settings, progress=bar.update)
+    # the held-out observations are evaluated with the fitted ones: one program for both
+    both = problem if held_out is None else dataclasses.replace(problem, observations=problem.observations + held_out.observations)
     with tqdm(total=draws.t.shape[0] * draws.t.shape[1], desc="posterior: model at draws", unit="draw", disable=not progress) as bar:
-        model = model_values(problem, draws.t, progress=bar.update)
+        values = model_values(both, draws.t, progress=bar.update)
+    model, predicted = np.split(values, [len(problem.observations)], axis=-1)
     idata = inference_data(problem, draws, model)
     summary = posterior_summary(problem, draws, idata)
     summary["predictive_check"] = predictive_check(problem, model)
     if held_out is not None:
-        with tqdm(total=draws.t.shape[0] * draws.t.shape[1], desc="posterior: held-out predictions", unit="draw",
-                  disable=not progress) as bar:
-            predicted = model_values(held_out, draws.t, progress=bar.update)
         summary["held_out"] = predictive_check(held_out, predicted)
     return Posterior(draws, model, idata, summary)
 
