@@ -42,15 +42,12 @@ def _params(factors):
 factors = st.lists(st.floats(1 / 3, 3.0), min_size=len(VARIED), max_size=len(VARIED))
 
 
-@jax.jit
-def _run(p):
+def _collagen(p):
     r = jt.simulate(p, t_end_s=jt.THREE_WEEKS_S, grid=GRID)
-    return r.failed, r.final, r.collagen_mg_per_g, r.dna_ug_per_g
+    return r.collagen_mg_per_g[-1], (r.failed, r.final, r.collagen_mg_per_g, r.dna_ug_per_g)
 
 
-@jax.jit
-def _grad(p):
-    return jax.grad(lambda q: jt.simulate(q, t_end_s=jt.THREE_WEEKS_S, grid=GRID).collagen_mg_per_g[-1])(p)
+_run_and_grad = jax.jit(jax.value_and_grad(_collagen, has_aux=True))  # the run and its gradient: one program
 
 
 @settings(settings.get_profile(PROFILE))
@@ -59,14 +56,13 @@ def test_valid_parameters_give_bounded_finite_fields_and_gradients(f):
     assume(f[VARIED.index("o_m")] * 0.16 < 1 and f[VARIED.index("o_c")] * 0.45 < 1)
     p = _params(f)
     p = jax.tree_util.tree_map(jnp.asarray, p)
-    failed, final, collagen, dna = _run(p)
+    (_, (failed, final, collagen, dna)), g = _run_and_grad(p)
     assert not bool(failed)
     o, c, m = (np.asarray(x) for x in (final.o, final.c, final.m))
     assert np.all(np.isfinite(o)) and np.all(np.isfinite(c)) and np.all(np.isfinite(m))
     assert o.min() >= -BOUNDS_TOL and c.min() >= -BOUNDS_TOL and m.min() >= -BOUNDS_TOL
     assert m.max() <= 1 + BOUNDS_TOL and c.max() <= float(p.c_max) * (1 + BOUNDS_TOL)
     assert np.all(np.isfinite(collagen)) and np.all(np.isfinite(dna))
-    g = _grad(p)
     assert all(np.isfinite(float(getattr(g, n))) for n in VARIED)
 
 
