@@ -90,29 +90,35 @@ class StaticProblem:
         )
 
     def observables(self, u):
-        """DNA (µg/g), collagen (mg/g), E_eff (kPa) of a state (§3)."""
+        """DNA (µg/g), collagen (mg/g), E_eff (kPa) of a state (§3), or of each column
+        of u (states × times)."""
         p = self.p
         o, c, m = u[0::3], u[1::3], u[2::3]
         h_m = self.h / 100.0
         yf = np.linspace(-h_m / 2, h_m / 2, self.ny + 1)
         y2 = (yf[1:] ** 3 - yf[:-1] ** 3) / 3
         d_m = p["depth_mm"] * 1e-3
-        EI = p["E_s_kPa"] * 1e3 * h_m**3 * d_m / 12 + p["E_m0_kPa_per_ug_g"] * 1e3 * d_m * np.sum(
-            y2 * p["rho_m_max_mg_g"] * 1e3 * m
+        EI = p["E_s_kPa"] * 1e3 * h_m**3 * d_m / 12 + p["E_m0_kPa_per_ug_g"] * 1e3 * d_m * np.tensordot(
+            y2, p["rho_m_max_mg_g"] * 1e3 * m, axes=1
         )
         return dict(
-            dna_ug_per_g=p["dna_ug_g_per_c"] * c.mean(),
-            collagen_mg_per_g=p["rho_m_max_mg_g"] * m.mean(),
+            dna_ug_per_g=p["dna_ug_g_per_c"] * c.mean(axis=0),
+            collagen_mg_per_g=p["rho_m_max_mg_g"] * m.mean(axis=0),
             E_eff_kPa=12 * EI / (h_m**3 * d_m) / 1e3,
         )
 
 
-def three_week_values(ny=400, rtol=1e-8, atol=1e-11, **changes):
+def values_at(t_eval, ny=400, rtol=1e-8, atol=1e-11, **changes):
+    """DNA, collagen and E_eff at each of the times `t_eval` (s; the first is 0)."""
     prob = StaticProblem(ny, **changes)
-    sol = prob.solve(np.array([0.0, THREE_WEEKS_S]), rtol=rtol, atol=atol)
+    sol = prob.solve(np.asarray(t_eval, float), rtol=rtol, atol=atol)
     if not sol.success:
         raise RuntimeError(sol.message)
-    return prob.observables(sol.y[:, -1])
+    return prob.observables(sol.y)
+
+
+def three_week_values(ny=400, rtol=1e-8, atol=1e-11, **changes):
+    return {k: v[-1] for k, v in values_at([0.0, THREE_WEEKS_S], ny, rtol, atol, **changes).items()}
 
 
 if __name__ == "__main__":
