@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy_reference
+from helpers import SMALL_FLEX
 
 import jaxtissue as jt
-from jaxtissue.beam import BeamGrid
 from jaxtissue.protocol import save_times
 
 
@@ -70,10 +70,10 @@ def test_jit_and_vmap_over_parameters():
 def test_saving_only_the_end_gives_the_same_final_values():
     """`save="end"` (what sweeps of final values use) changes only what is kept."""
     p = jt.paper_parameters()
-    for protocol, grid, t_end in ((jt.Protocol.static(), jt.Grid(1, 16), 5e5), (jt.Protocol.flex(), jt.Grid(3, 8), 4e4)):
-        beam = BeamGrid(8, 16)
-        full = jt.simulate(p, protocol, t_end, grid, beam=beam)
-        end = jt.simulate(p, protocol, t_end, grid, beam=beam, save="end")
+    flex = (jt.Protocol.flex(), jt.Grid(*SMALL_FLEX["grid_shape"]), SMALL_FLEX["t_end_s"])  # the series: the suite's shared program
+    for protocol, grid, t_end in ((jt.Protocol.static(), jt.Grid(1, 16), 5e5), flex):
+        full = jt.simulate(p, protocol, t_end, grid)
+        end = jt.simulate(p, protocol, t_end, grid, save="end")
         assert end.ts == (t_end,) and end.collagen_mg_per_g.shape == (1,) and not bool(end.failed)
         for key in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "post_force_max_N", "profile_m"):
             np.testing.assert_allclose(getattr(end, key)[-1], getattr(full, key)[-1], rtol=1e-9, err_msg=key)  # round-off: the end state is not interpolated
