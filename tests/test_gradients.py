@@ -35,12 +35,33 @@ def test_gradient_matches_central_differences(jacobian, name):
     assert np.all(rel < 1e-4), (name, ad, fd, rel)
 
 
+ADAPTIVE = jt.SolverOptions(rtol=1e-9, atol=1e-12)
+
+
 def test_fixed_steps_are_accurate():
     """The fixed geometric steps used above reproduce the adaptive solution closely."""
     p = jt.paper_parameters()
-    adaptive = jt.simulate(p, t_end_s=jt.THREE_WEEKS_S, grid=GRID, options=jt.SolverOptions(rtol=1e-9, atol=1e-12))
+    adaptive = jt.simulate(p, t_end_s=jt.THREE_WEEKS_S, grid=GRID, options=ADAPTIVE)
     fixed = three_week(p)
     np.testing.assert_allclose(np.asarray(fixed), [adaptive.collagen_mg_per_g[-1], adaptive.dna_ug_per_g[-1]], rtol=1e-5)
+
+
+def test_adaptive_gradient_matches_central_differences():
+    """Adaptive steps and the series saved, as users run: the checkpointed adjoint
+    recomputes the steps from a few stored states, and must retrace the forward pass's
+    time grid (`numerics.ReproducibleSteps`; 1560 steps here)."""
+    paper = jt.paper_parameters()
+
+    def collagen(p):  # D_c = χ = 0 held untraced, as in a fit of the kinetic parameters
+        r = jt.simulate(p.replace(D_c=paper.D_c, chi=paper.chi), t_end_s=jt.THREE_WEEKS_S, grid=GRID, options=ADAPTIVE)
+        return r.collagen_mg_per_g[-1]
+
+    p = jax.tree_util.tree_map(jnp.asarray, paper)
+    value = jax.jit(collagen)
+    eps = 1e-4 * paper.k_m0
+    fd = (float(value(p.replace(k_m0=p.k_m0 + eps))) - float(value(p.replace(k_m0=p.k_m0 - eps)))) / (2 * eps)
+    ad = float(jax.jit(jax.grad(collagen))(p).k_m0)
+    assert abs(ad - fd) < 2e-5 * abs(fd), (ad, fd)
 
 
 @pytest.mark.slow  # vmapped forward runs: tests/test_simulate.py::test_jit_and_vmap_over_parameters

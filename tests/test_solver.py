@@ -128,15 +128,15 @@ def test_a_2d_solve_probes_one_colour_at_a_time():
 
 
 def test_step_sizes_are_rounded_so_round_off_cannot_move_the_time_grid():
-    """`ReproducibleSteps` rounds each step down to 24 bits: a last-bit difference in
+    """`ReproducibleSteps` rounds each step down to 12 bits: a round-off difference in
     the error estimate (forward pass vs its recomputation in the reverse pass) leaves
-    the step unchanged; the step changes by less than 2^-23 relative."""
+    the step unchanged; the step changes by less than 2^-11 relative."""
     from jaxtissue.numerics import quantise
 
     dt = jnp.asarray(np.random.default_rng(1).uniform(1.0, 1e5, 1000))
     q = quantise(dt)
-    assert bool(jnp.all(q <= dt)) and bool(jnp.all((dt - q) / dt < 2.0**-23))
-    assert float(jnp.mean(quantise(jnp.nextafter(dt, jnp.inf)) == q)) > 0.99
+    assert bool(jnp.all(q <= dt)) and bool(jnp.all((dt - q) / dt < 2.0**-11))
+    assert float(jnp.mean(quantise(dt * (1 + 1e-9)) == q)) > 0.99
 
 
 def _strip_operator(nx, ny, aspect, seed=0):
