@@ -46,24 +46,6 @@ def test_fixed_steps_are_accurate():
     np.testing.assert_allclose(np.asarray(fixed), [adaptive.collagen_mg_per_g[-1], adaptive.dna_ug_per_g[-1]], rtol=1e-5)
 
 
-def test_adaptive_gradient_matches_central_differences():
-    """Adaptive steps and the series saved, as users run: the checkpointed adjoint
-    recomputes the steps from a few stored states, and must retrace the forward pass's
-    time grid (`numerics.ReproducibleSteps`; 1560 steps here)."""
-    paper = jt.paper_parameters()
-
-    def collagen(p):  # D_c = χ = 0 held untraced, as in a fit of the kinetic parameters
-        r = jt.simulate(p.replace(D_c=paper.D_c, chi=paper.chi), t_end_s=jt.THREE_WEEKS_S, grid=GRID, options=ADAPTIVE)
-        return r.collagen_mg_per_g[-1]
-
-    p = jax.tree_util.tree_map(jnp.asarray, paper)
-    value = jax.jit(collagen)
-    eps = 1e-4 * paper.k_m0
-    fd = (float(value(p.replace(k_m0=p.k_m0 + eps))) - float(value(p.replace(k_m0=p.k_m0 - eps)))) / (2 * eps)
-    ad = float(jax.jit(jax.grad(collagen))(p).k_m0)
-    assert abs(ad - fd) < 2e-5 * abs(fd), (ad, fd)
-
-
 @pytest.mark.slow  # vmapped forward runs: tests/test_simulate.py::test_jit_and_vmap_over_parameters
 def test_vmapped_gradients_equal_one_at_a_time():
     # adaptive steps: in a batch, a finished trajectory is stepped with h = 0 (discarded);
@@ -79,7 +61,25 @@ def test_vmapped_gradients_equal_one_at_a_time():
     np.testing.assert_allclose(batched, single, rtol=1e-8)
 
 
-@pytest.mark.slow  # the flex gradients of tests/test_coupling.py run the adaptive checkpointed adjoint
+def test_adaptive_gradient_with_a_saved_series_matches_central_differences():
+    """Adaptive steps and the series saved, as users run: the checkpointed adjoint
+    recomputes the steps from a few stored states, and must retrace the forward pass's
+    time grid (`numerics.ReproducibleSteps`; ~1550 steps here)."""
+    paper = jt.paper_parameters()
+
+    def collagen(p):  # D_c = χ = 0 held untraced, as in a fit of the kinetic parameters
+        r = jt.simulate(p.replace(D_c=paper.D_c, chi=paper.chi), t_end_s=jt.THREE_WEEKS_S, grid=GRID, options=ADAPTIVE)
+        return r.collagen_mg_per_g[-1]
+
+    p = jax.tree_util.tree_map(jnp.asarray, paper)
+    value_and_grad = jax.jit(jax.value_and_grad(collagen))  # one program for both
+    eps = 1e-4 * paper.k_m0
+    fd = (float(value_and_grad(p.replace(k_m0=p.k_m0 + eps))[0]) - float(value_and_grad(p.replace(k_m0=p.k_m0 - eps))[0])) / (2 * eps)
+    ad = float(value_and_grad(p)[1].k_m0)
+    assert abs(ad - fd) < 2e-5 * abs(fd), (ad, fd)
+
+
+@pytest.mark.slow  # adaptive steps, cheaper: test_adaptive_gradient_with_a_saved_series_matches_central_differences
 def test_adaptive_checkpointed_gradient_matches_central_differences():
     """Adaptive steps and the default checkpointed adjoint, whose reverse pass recomputes
     steps from a few stored states: at a tight tolerance the gradient must match central

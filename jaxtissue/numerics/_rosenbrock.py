@@ -168,9 +168,9 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
     compound into a different time grid, so that the reverse pass differentiates steps
     the forward pass did not take. The error estimate is a difference of nearly equal
     stage combinations, so that round-off is far above 1 ulp: rounded to 24 bits, the
-    steps of a static run saving its series (1 × 20 grid, rtol 1e-9, 1560 steps) still
-    parted, and the gradient of 3-week collagen w.r.t. k_m0 was 1.9e-3 off central
-    differences (`tests/test_gradients.py`). Rounded to 12 bits they agree unless an
+    steps of a static run saving its series (1 × 20 grid, rtol 1e-9, ~1560 steps) part,
+    and the gradient of 3-week collagen w.r.t. k_m0 is 1.9e-3 off central differences
+    (`tests/test_gradients.py`). Rounded to 12 bits they agree unless an
     error estimate sits within round-off of a rounding boundary; a vmapped batch then
     also equals the single runs to round-off. Each step is shortened by < 2.5e-4 of
     itself, far below what a tolerance decides.
