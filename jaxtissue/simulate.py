@@ -18,7 +18,7 @@ from .beam import BeamGrid, loading_cycle
 from .coupling import beam_from_ecm, lumped_transport, with_rule_constant
 from .grid import Grid
 from .growth import GrowthModel, has_cell_transport
-from .numerics import ROS34PW2, ReproducibleSteps, line_sweeps, replayed_scan
+from .numerics import ROS34PW2, ReproducibleSteps, Rescaled, line_sweeps, replayed_scan
 from .params import Params, concrete_value, nondimensionalise
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
 from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
@@ -85,13 +85,14 @@ class SolverOptions(eqx.Module):
             return diffrax.ForwardMode()
         return diffrax.RecursiveCheckpointAdjoint(checkpoints=self.checkpoints or checkpoints)
 
-    def controller(self, t0, t1):
-        """diffrax step-size controller over [t0, t1]."""
+    def controller(self, span_s):
+        """diffrax step-size controller over an interval of `span_s` seconds, in the unit
+        time s = (t − t0) / span_s that `growth_solve` integrates in."""
         if self.fixed_steps is None:
-            return ReproducibleSteps(diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s), dt0=self.dt0_s)
-        span = t1 - t0
-        frac = jnp.geomspace(self.dt0_s / span, 1.0, self.fixed_steps)
-        return diffrax.StepTo(ts=t0 + span * jnp.concatenate([jnp.zeros(1), frac]))
+            pid = diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s / span_s)
+            return ReproducibleSteps(pid, dt0=self.dt0_s / span_s)
+        frac = jnp.geomspace(self.dt0_s / span_s, 1.0, self.fixed_steps)
+        return diffrax.StepTo(ts=jnp.concatenate([jnp.zeros(1), frac]))
 
 
 def _growth_code(sol):
@@ -103,18 +104,22 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     """Integrate the growth system over [t0, t1] (diffrax, `ROS34PW2`); `sol.ys` is the
     state at `ts` (`ts=None`: at t1 only, no dense output). Observables are taken from
     the saved states afterwards (`result.observe`), outside the solver's loop and its
-    checkpointed reverse pass (`checkpoints`, unless `options` sets them)."""
-    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
+    checkpointed reverse pass (`checkpoints`, unless `options` sets them).
+
+    The solve runs in the unit time s = (t − t0)/(t1 − t0) (`numerics.Rescaled`; `sol.ts`
+    is in s): diffrax's time bounds are then constants, also where t0 and t1 are traced."""
+    span = t1 - t0
+    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=(ts - t0) / span)
     return diffrax.diffeqsolve(
-        diffrax.ODETerm(model),
+        diffrax.ODETerm(Rescaled(model, span)),
         ROS34PW2(),
-        t0=t0,
-        t1=t1,
+        t0=0.0,
+        t1=1.0,
         dt0=None,  # the controller's (`ReproducibleSteps.dt0`)
         y0=y0,
         args=args,
         saveat=saveat,
-        stepsize_controller=options.controller(t0, t1),
+        stepsize_controller=options.controller(span),
         max_steps=options.max_steps,
         adjoint=options.adjoint(checkpoints),
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),

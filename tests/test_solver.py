@@ -11,7 +11,7 @@ from helpers import observed_orders
 import jaxtissue as jt
 from jaxtissue.growth import GrowthModel
 from jaxtissue.growth_jacobian import GrowthJacobian
-from jaxtissue.numerics import ROS34PW2, FivePoint, line_sweeps, thomas_factor, thomas_solve
+from jaxtissue.numerics import ROS34PW2, FivePoint, Rescaled, line_sweeps, thomas_factor, thomas_solve
 from jaxtissue.params import nondimensionalise
 from jaxtissue.simulate import default_o2_sweeps
 from jaxtissue.state import State
@@ -50,6 +50,19 @@ def test_adaptive_solution_matches_kvaerno5():
     reference = _solve(diffrax.Kvaerno5(), y0, diffrax.PIDController(rtol=1e-11, atol=1e-14), dt0=1.0)
     ours = _solve(ROS34PW2(), y0, diffrax.PIDController(rtol=1e-8, atol=1e-11), dt0=1.0)
     assert float(jnp.max(jnp.abs(ours - reference))) < 1e-6
+
+
+def test_a_solve_in_unit_time_is_the_same_discrete_map():
+    """`Rescaled` (what `growth_solve` integrates): n steps of 1/n in s = t/T take the
+    steps of T/n in t, to round-off."""
+    y0 = State.initial(COEFFS, GRID)
+    in_t = _solve(ROS34PW2(), y0, diffrax.ConstantStepSize(), jnp.asarray(T / 8))
+    sol = diffrax.diffeqsolve(diffrax.ODETerm(Rescaled(MODEL, T)), ROS34PW2(), 0.0, 1.0, jnp.asarray(1 / 8), y0,
+                              stepsize_controller=diffrax.ConstantStepSize())
+    in_s = jnp.concatenate([sol.ys.o[-1].ravel(), sol.ys.c[-1].ravel(), sol.ys.m[-1].ravel()])
+    np.testing.assert_allclose(in_s, in_t, rtol=1e-12, atol=1e-14)
+    start = jnp.concatenate([y0.o.ravel(), y0.c.ravel(), y0.m.ravel()])
+    assert float(jnp.max(jnp.abs(in_t - start))) > 1e-2  # the state moved
 
 
 def _dense_five_point(op: FivePoint) -> np.ndarray:

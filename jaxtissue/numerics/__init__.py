@@ -17,5 +17,6 @@ from ._rosenbrock import (
     ROS34PW2 as ROS34PW2,
     AbstractStructuredField as AbstractStructuredField,
     ReproducibleSteps as ReproducibleSteps,
+    Rescaled as Rescaled,
     quantise as quantise,
 )

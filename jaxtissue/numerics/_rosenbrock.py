@@ -45,6 +45,33 @@ class AbstractStructuredField(eqx.Module):
         differentiation (`jax.lax.stop_gradient`) where second derivatives are not
         wanted."""
 
+
+class Rescaled(AbstractStructuredField):
+    """An autonomous `field` in the time s = t / `scale`: dy/ds = scale · field(y).
+    Integrated over s ∈ [0, 1] with scale = t1 − t0, diffrax's time bounds are
+    constants even where t0 and t1 are traced, and its setup of each solve on t1 (t1
+    stepped down 100 ulp, one `prevbefore` at a time: ~4 400 scalar operations) folds
+    away at compile time instead of being compiled into the program."""
+
+    field: AbstractStructuredField
+    scale: jax.Array | float
+
+    def __call__(self, t, y, args):
+        return jtu.tree_map(lambda d: self.scale * d, self.field(t, y, args))
+
+    def shifted_factor(self, t, y, args, a):
+        # a I − scale·J̃ = scale (a/scale I − J̃)
+        return _ScaledFactor(self.field.shifted_factor(t, y, args, a / self.scale), self.scale)
+
+
+class _ScaledFactor(eqx.Module):
+    factor: eqx.Module
+    scale: jax.Array | float
+
+    def solve(self, r):
+        return jtu.tree_map(lambda u: u / self.scale, self.factor.solve(r))
+
+
 # ROS34PW2 in the standard form (α_ij, γ_ij, b_i, b̂_i) ...
 _GAMMA = 4.3586652150845900e-01
 _ALPHA = np.array(
