@@ -6,9 +6,13 @@ The posterior of the free parameters θ given data y is
     p(θ | y) ∝ exp(−χ²(θ)/2) · Π_i p_i(θ_i)        inside the bounds,
 
 with χ² the SD-weighted sum of squares of `calibration.Problem.residuals` and p_i the
-priors (`priors.Prior`). NUTS samples it in unbounded coordinates u: the fit coordinate
-t (ln θ or θ) is t = lo + (hi − lo)·σ(u), σ the logistic function, and the density in u
-carries the Jacobian |dθ/du|. The gradient of ln p comes from forward-mode
+priors (`priors.Prior`). NUTS samples it in unbounded coordinates u, mapped onto the
+bounds of the fit coordinate t (ln θ or θ) by a soft box (`t_from_u`): t = u inside,
+bent onto the bounds within a few widths δ = 5 % of the range; the density in u carries
+the Jacobian |dθ/du|. Where the posterior piles up against a bound (k_a and k_c,max of
+the Engelmayr problem) the logistic map t = lo + (hi − lo)·σ(u) would stretch that
+corner into long arms of shrinking width, which NUTS crosses only with a small step;
+the soft box keeps the ridge straight and of one width. The gradient of ln p comes from forward-mode
 differentiation of the residuals (a handful of tangents through the coupled solve),
 wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 
@@ -63,30 +67,42 @@ class SamplerSettings:
 # ---------------------------------------------------------------------------------------
 
 
+SOFT_EDGE = 0.05  # δ of the soft box, as a fraction of the range of t
+
+
 def _t_bounds(free):
     lo, hi = zip(*(f.t_bounds for f in free))
-    return jnp.asarray(lo), jnp.asarray(hi)
+    lo, hi = jnp.asarray(lo), jnp.asarray(hi)
+    return lo, hi, SOFT_EDGE * (hi - lo)
 
 
 def t_from_u(free, u):
-    """The fit coordinate t (ln θ or θ) of u for the free parameters `free`."""
-    lo, hi = _t_bounds(free)
-    return lo + (hi - lo) * jax.nn.sigmoid(u)
+    """The fit coordinate t (ln θ or θ) of u for the free parameters `free`: the soft box
+    t = lo + δ·[s((u − lo)/δ) − s((u − hi)/δ)], s the softplus function, a smooth
+    increasing map of the real line onto (lo, hi) that is t ≈ u a few δ inside."""
+    lo, hi, d = _t_bounds(free)
+    return lo + d * (jax.nn.softplus((u - lo) / d) - jax.nn.softplus((u - hi) / d))
 
 
 def u_from_t(free, t, margin: float = 1e-3):
-    """The unbounded coordinate of t, t first moved `margin` of the range inside the
-    bounds (an optimum on a bound has no finite u)."""
-    lo, hi = _t_bounds(free)
-    x = jnp.clip((jnp.asarray(t) - lo) / (hi - lo), margin, 1 - margin)
-    return jnp.log(x) - jnp.log1p(-x)
+    """The unbounded coordinate of t (`t_from_u` inverted in closed form), t first moved
+    `margin` of the range inside the bounds (an optimum on a bound has no finite u)."""
+    lo, hi, d = _t_bounds(free)
+    t = jnp.clip(jnp.asarray(t), lo + margin * (hi - lo), hi - margin * (hi - lo))
+    a = (t - lo) / d
+    return lo + d * (a + jnp.log(-jnp.expm1(-a))) - d * jnp.log(-jnp.expm1((t - hi) / d))
+
+
+def log_dt_du(free, u):
+    """ln(dt/du) of `t_from_u`, each coordinate: σ((u − lo)/δ) − σ((u − hi)/δ) in logs."""
+    lo, hi, d = _t_bounds(free)
+    return jax.nn.log_sigmoid((u - lo) / d) + jax.nn.log_sigmoid(-(u - hi) / d) + jnp.log(-jnp.expm1(-(hi - lo) / d))
 
 
 def log_prior_u(free, u):
     """Σ ln p_i(θ_i) + ln|dθ_i/du_i|: the priors of `free` as a density in u."""
-    lo, hi = _t_bounds(free)
     t = t_from_u(free, u)
-    total = jnp.sum(jnp.log(hi - lo) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u))  # dt/du
+    total = jnp.sum(log_dt_du(free, u))
     for i, f in enumerate(free):
         value = f.from_t(t[i])
         total += f.prior_density.log_density(value) + (t[i] if f.transform == "log" else 0.0)  # dθ/dt = θ
@@ -150,13 +166,13 @@ class Draws(NamedTuple):
 
 def laplace_inverse_mass(problem: Problem, t_best, jacobian) -> np.ndarray:
     """The warmup's first inverse mass matrix: the Laplace covariance in u at the optimum,
-    (Dᵀ JᵀJ D + I/σ²)⁻¹ with D = dt/du, J = ∂r/∂t and σ² = π²/3 the variance of a flat
-    prior in u (which keeps directions the data leave free at the prior's width)."""
-    lo, hi = (np.asarray(b) for b in _t_bounds(problem.free))
-    s = 1.0 / (1.0 + np.exp(-np.asarray(u_from_t(problem.free, t_best))))
-    D = np.diag((hi - lo) * s * (1 - s))
+    (Dᵀ JᵀJ D + Σ₀⁻¹)⁻¹ with D = dt/du, J = ∂r/∂t and Σ₀ = diag((hi − lo)²/12), the
+    variance of a flat prior (which keeps directions the data leave free at the prior's
+    width)."""
+    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    D = np.diag(np.exp(np.asarray(log_dt_du(problem.free, u_from_t(problem.free, t_best)))))
     J = np.asarray(jacobian)
-    precision = D @ J.T @ J @ D + np.eye(len(D)) * 3.0 / np.pi**2
+    precision = D @ J.T @ J @ D + np.diag(12.0 / (hi - lo) ** 2)
     return np.linalg.inv(precision)
 
 
