@@ -7,6 +7,7 @@ measurements run in a child process with JAX's default single CPU device (the de
 count is fixed when JAX starts), so the loop is not slowed by the split.
 
     python benchmarks/sweep.py [--scipy-sets N]   (SciPy rate from N sets, default 64)
+    python benchmarks/sweep.py --batch-sizes 256,4096   (the batch alone, by batch size)
 """
 
 from __future__ import annotations
@@ -36,11 +37,11 @@ RTOL = 1e-5
 NAMES = ("k_c_max", "k_a", "k_m0")
 
 
-def problem():
+def problem(n=N):
     rng = np.random.default_rng(0)
     lo, hi = np.log([1.0e-5, 0.7e-5, 1.0e-7]), np.log([1.5e-5, 1.3e-5, 3.0e-7])
-    points = np.exp(lo + (hi - lo) * rng.random((N, 3)))
-    sweep = sw.Sweep(NAMES, points, None, jt.Protocol.static(), t_end_s=jt.THREE_WEEKS_S, chunk=N,
+    points = np.exp(lo + (hi - lo) * rng.random((n, 3)))
+    sweep = sw.Sweep(NAMES, points, None, jt.Protocol.static(), t_end_s=jt.THREE_WEEKS_S, chunk=n,
                      grid=jt.Grid(1, 40), rtol=RTOL)
     return sweep, points
 
@@ -63,6 +64,20 @@ def single_device():
     loop = [float(single(x)["collagen_mg_per_g"]) for x in points]
     t_loop = time.perf_counter() - t0
     print(json.dumps(dict(devices=len(jax.devices()), t_batch=t_batch, t_loop=t_loop, loop=loop)))
+
+
+def by_batch_size(sizes):
+    """The vmapped batch alone, one compiled program per batch size, on `jax.devices()`."""
+    print(f"static parameter sets, 3 weeks, grid 1 x 40, rtol {RTOL:g}; devices: {jax.devices()}")
+    print(f"{'sets':>8s}{'compile (s)':>13s}{'run (s)':>10s}{'simulations/s':>15s}")
+    for n in sizes:
+        sweep, points = problem(n)
+        batch, _ = sw.batched(sweep)
+        t0 = time.perf_counter()
+        jax.block_until_ready(batch(points))
+        first = time.perf_counter() - t0
+        t_batch, _ = time_batch(sweep, points)
+        print(f"{n:>8d}{first - t_batch:>13.1f}{t_batch:>10.2f}{n / t_batch:>15.1f}", flush=True)
 
 
 def main(scipy_sets=64):
@@ -97,5 +112,7 @@ def main(scipy_sets=64):
 if __name__ == "__main__":
     if CHILD:
         single_device()
+    elif "--batch-sizes" in sys.argv:
+        by_batch_size([int(n) for n in sys.argv[sys.argv.index("--batch-sizes") + 1].split(",")])
     else:
         main(int(sys.argv[sys.argv.index("--scipy-sets") + 1]) if "--scipy-sets" in sys.argv else 64)
