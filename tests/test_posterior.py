@@ -162,7 +162,6 @@ def test_u_round_trips_and_stays_inside_the_bounds():
     np.testing.assert_allclose(np.asarray(post.t_from_u(FREE, post.u_from_t(FREE, mid))), np.asarray(mid), rtol=1e-12)
 
 
-
 def test_a_posterior_piled_against_two_bounds_mixes():
     """A narrow ridge t₂ ≈ t₁ whose mass piles into the corner of the box at the lower
     bounds (as k_c,max and k_a of the Engelmayr problem do), where the soft box's walls
@@ -191,6 +190,7 @@ def test_a_posterior_piled_against_two_bounds_mixes():
           f"R-hat {r_hat.round(4)}, {steps.mean():.1f} leapfrog steps a draw, {int(div.sum())} divergent")
     assert np.all(np.abs(t.reshape(-1, 2).mean(axis=0) - exact) < 4 * sd / np.sqrt(ess))
     assert np.all(r_hat < 1.05) and div.sum() == 0
+
 
 _CHAINS_OVER_DEVICES = """
 import sys, numpy as np, jax, jax.numpy as jnp

@@ -12,9 +12,9 @@ bent onto the bounds within a few widths δ = 5 % of the range; the density in u
 the Jacobian |dθ/du|. Where the posterior piles up against a bound (k_a and k_c,max of
 the Engelmayr problem) the logistic map t = lo + (hi − lo)·σ(u) would stretch that
 corner into long arms of shrinking width, which NUTS crosses only with a small step;
-the soft box keeps the ridge straight and of one width. The gradient of ln p comes from forward-mode
-differentiation of the residuals (a handful of tangents through the coupled solve),
-wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
+the soft box keeps the ridge straight and of one width. The gradient of ln p comes
+from forward-mode differentiation of the residuals (a handful of tangents through the
+coupled solve), wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 
 Chains run batched under `vmap` (split over the devices when there are several, e.g.
 one per CPU core: `sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of
