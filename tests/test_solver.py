@@ -110,10 +110,10 @@ def test_structured_solves_equal_dense_solves():
 
 @pytest.mark.slow  # memory of one step's reverse pass; a 2-D step's: test_a_2d_solve_probes_one_colour_at_a_time
 def test_a_steps_reverse_pass_keeps_few_residuals():
-    """The reverse pass of one step stores its stage states and the factor, not the
-    right-hand side's intermediates (which are recomputed): this bounds the gradient's
-    memory (benchmarks/flex.py)."""
-    grid = jt.Grid(nx=6, ny=10)
+    """The reverse pass of one step stores its stage states and the O2 solves' line
+    factors, not the right-hand side's intermediates (which are recomputed; storing them
+    took ~560 fields of the grid): this bounds the gradient's memory (benchmarks/flex.py)."""
+    grid = jt.Grid(nx=24, ny=20)
     transport = jt.Transport(vx=jnp.full(grid.shape, 1e-4), vy=jnp.zeros(grid.shape), dispersion=jnp.full(grid.shape, 1e-6))
     y0 = State.initial(COEFFS, grid)
     y0 = State(o=y0.o * 0.8, c=y0.c * 1.1, m=y0.m + 0.1)
@@ -124,10 +124,12 @@ def test_a_steps_reverse_pass_keeps_few_residuals():
         return jnp.sum(y1.m) + jnp.sum(err.o)
 
     _, pullback = jax.vjp(step, y0, COEFFS)  # a pytree holding the residuals
-    factor = grid.nx * grid.ny * grid.ny  # the block inverses of the O2 operator
-    sizes = [x.size for x in jax.tree_util.tree_leaves(pullback)]
-    fields = sum(n for n in sizes if n != factor) / np.prod(grid.shape)
-    assert fields < 60, fields  # 4 stages x (3 states + 3 right-hand sides) + the few fields of the step itself
+    leaves = jax.tree_util.tree_leaves(pullback)
+    cells = np.prod(grid.shape)
+    fine = sum(x.size for x in leaves if x.shape[-2:] == grid.shape) / cells
+    assert fine < 60, fine  # 4 stages x (3 states + 3 right-hand sides) + the few fields of the step itself
+    total = sum(x.size for x in leaves) / cells
+    assert total < 200, total  # and the multigrid levels of the O2 solves (measured: 47 + 108)
 
 
 def test_a_2d_solve_probes_one_colour_at_a_time():
