@@ -59,14 +59,16 @@ def main():
 
     # ---- NUTS
     settings = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples)
-    imm0 = post.laplace_inverse_mass(problem, best.t, best.jacobian)
-    u0 = post.starting_points(problem, best.t, imm0, settings)
-    programs = post.nuts_programs(lambda u, a: post.log_density_fn(problem)(u), settings)
+    c, L = post.whitening(problem, best.t, best.jacobian)  # the coordinates `calibrate --posterior` samples in
+    z0 = np.random.default_rng(0).normal(size=(args.chains, k))
+    density = post.log_density_fn(problem)
+    programs = post.nuts_programs(lambda z, a: density(a[0] + a[1] @ z), settings)
     start = time.perf_counter()
     short = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=1)
-    post.run_chains(programs, u0, imm0, short, chunk=args.samples)  # compiles both programs (the chunk length too)
+    post.run_chains(programs, z0, np.eye(k), short, args=(c, L), chunk=args.samples)  # compiles both programs (the chunk length too)
     compile_s = time.perf_counter() - start
-    (u, _, div, _, steps), _, _, seconds = post.run_chains(programs, u0, imm0, settings, chunk=args.samples)
+    (z, _, div, _, steps), _, _, seconds = post.run_chains(programs, z0, np.eye(k), settings, args=(c, L), chunk=args.samples)
+    u = c + z @ L.T
     nuts_s = seconds["warmup"] + seconds["sampling"]
     az = post.import_arviz()
     ess_nuts = np.asarray(az.ess(az.from_dict(posterior={"u": u}), method="bulk")["u"].values)
@@ -78,7 +80,7 @@ def main():
     import emcee
 
     log_density = jax.jit(jax.vmap(post.log_density_fn(problem)))
-    walkers = np.asarray(u0[0]) + 0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)) @ np.linalg.cholesky(imm0).T
+    walkers = c + 0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)) @ L.T
     start = time.perf_counter()
     jax.block_until_ready(log_density(jnp.asarray(walkers)))
     compile_e = time.perf_counter() - start

@@ -176,14 +176,6 @@ def laplace_inverse_mass(problem: Problem, t_best, jacobian) -> np.ndarray:
     return np.linalg.inv(precision)
 
 
-def starting_points(problem: Problem, t_best, covariance, settings: SamplerSettings) -> np.ndarray:
-    """(chains, k) starts in u, drawn from N(u_best, jitter² · covariance): dispersed
-    over the Laplace approximation, so that R-hat can see chains that disagree."""
-    u0 = np.asarray(u_from_t(problem.free, t_best))
-    noise = np.random.default_rng(settings.seed).normal(size=(settings.chains, u0.size))
-    return u0 + settings.jitter * noise @ np.linalg.cholesky(covariance).T
-
-
 def nuts_programs(log_density, settings: SamplerSettings):
     """Jitted (adapt, draws) for `log_density(u, args)`, batched over chains.
 
@@ -261,20 +253,31 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
 @functools.lru_cache(maxsize=4)
 def _programs(problem: Problem, settings: SamplerSettings):
     log_density = log_density_fn(problem)
-    return nuts_programs(lambda u, args: log_density(u), settings)
+    return nuts_programs(lambda z, args: log_density(args[0] + args[1] @ z), settings)
+
+
+def whitening(problem: Problem, t_best, jacobian) -> tuple[np.ndarray, np.ndarray]:
+    """(c, L): the sampler runs in z with u = c + L z, c the optimum's u and L Lᵀ the
+    Laplace covariance (`laplace_inverse_mass`), so that the mass matrix starts at the
+    identity and every coordinate is O(1) whatever the parameters' units (the warmup
+    shrinks its estimates towards 10⁻³·I, which would swamp a coordinate 10⁻⁵ wide)."""
+    c = np.asarray(u_from_t(problem.free, t_best))
+    return c, np.linalg.cholesky(laplace_inverse_mass(problem, t_best, jacobian))
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
-    """NUTS draws of the posterior from starts around `t_best`, the fit's optimum, whose
-    Jacobian ∂r/∂t seeds the mass matrix (`laplace_inverse_mass`). `progress(n)` is
+    """NUTS draws of the posterior in `whitening`'s coordinates around `t_best`, the
+    fit's optimum, the chains started from N(0, jitter²·I) there: dispersed over the
+    Laplace approximation, so that R-hat can see chains that disagree. `progress(n)` is
     called after warmup (n = warmup) and after each chunk of draws."""
-    imm0 = laplace_inverse_mass(problem, t_best, jacobian)
-    u0 = starting_points(problem, t_best, imm0, settings)
-    (u, lp, div, acc, steps), step_size, imm, seconds = run_chains(_programs(problem, settings), u0, imm0, settings,
-                                                                   progress=progress)
+    c, L = whitening(problem, t_best, jacobian)
+    z0 = settings.jitter * np.random.default_rng(settings.seed).normal(size=(settings.chains, c.size))
+    (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(_programs(problem, settings), z0, np.eye(c.size), settings,
+                                                                   args=(jnp.asarray(c), jnp.asarray(L)), progress=progress)
+    u = c + z @ L.T
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
     values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
-    return Draws(u, t, values, lp, div, acc, steps, step_size, imm, seconds)
+    return Draws(u, t, values, lp, div, acc, steps, step_size, L @ imm @ L.T, seconds)
 
 
 def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndarray:
