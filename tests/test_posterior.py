@@ -3,6 +3,7 @@ closed-form posterior), the priors and their transforms, chains over devices, an
 risk measures of design under uncertainty. The study built on it:
 tests/test_posterior_study.py."""
 
+import dataclasses
 import math
 
 import jax
@@ -190,6 +191,39 @@ def test_a_posterior_piled_against_two_bounds_mixes():
           f"R-hat {r_hat.round(4)}, {steps.mean():.1f} leapfrog steps a draw, {int(div.sum())} divergent")
     assert np.all(np.abs(t.reshape(-1, 2).mean(axis=0) - exact) < 4 * sd / np.sqrt(ess))
     assert np.all(r_hat < 1.05) and div.sum() == 0
+
+
+@dataclasses.dataclass(frozen=True)
+class _RidgeInSeconds:
+    """A stand-in calibration problem: θ₂ = 0.9 θ₁ + 1e-6 to ±1e-7, θ₁ = 5e-6 ± 1e-6 (rates
+    in 1/s, linear coordinates), flat priors in [1e-6, 2.5e-5]: a thin ridge in units
+    10⁻⁵ wide, as k_c,max and k_a are."""
+
+    free: tuple = (FreeParameter("k_c_max", 1e-6, 2.5e-5, "linear"), FreeParameter("k_a", 1e-6, 2.5e-5, "linear"))
+
+    def residuals(self, t):
+        return jnp.stack([(t[0] - 5e-6) / 1e-6, (t[1] - 0.9 * t[0] - 1e-6) / 1e-7])
+
+    def values_from_t(self, t):
+        return t
+
+
+def test_sample_is_at_home_in_any_units():
+    """`post.sample` on a ridge in parameters ~1e-5 wide (linear coordinates): it runs in
+    whitened coordinates, so the mass matrix's adaptation sees O(1) scales; means and
+    SDs against the Gaussian's, few leapfrog steps."""
+    problem = _RidgeInSeconds()
+    t_best = jnp.asarray([5e-6, 5.5e-6])
+    draws = post.sample(problem, t_best, jax.jacfwd(problem.residuals)(t_best), post.SamplerSettings(chains=2, warmup=150, samples=200))
+    az = post.import_arviz()
+    ess = np.asarray(az.ess(az.from_dict(posterior={"t": draws.t}))["t"].values)
+    mean, sd = draws.t.reshape(-1, 2).mean(axis=0), draws.t.reshape(-1, 2).std(axis=0)
+    exact_sd = np.array([1e-6, math.hypot(0.9e-6, 1e-7)])
+    print(f"ridge in 1/s: means {mean} (exact 5e-6, 5.5e-6), SDs {sd} (exact {exact_sd}), ESS {ess.round()}, "
+          f"{draws.leapfrog_steps.mean():.1f} leapfrog steps a draw")
+    assert np.all(np.abs(mean - [5e-6, 5.5e-6]) < 4 * exact_sd / np.sqrt(ess))
+    np.testing.assert_allclose(sd, exact_sd, rtol=0.25)
+    assert draws.leapfrog_steps.mean() < 8 and draws.diverging.sum() == 0
 
 
 _CHAINS_OVER_DEVICES = """
