@@ -61,8 +61,7 @@ def main():
     settings = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples)
     c, L = post.whitening(problem, best.t, best.jacobian)  # the coordinates `calibrate --posterior` samples in
     z0 = np.random.default_rng(0).normal(size=(args.chains, k))
-    density = post.log_density_fn(problem)
-    programs = post.nuts_programs(lambda z, a: density(a[0] + a[1] @ z), settings)
+    programs = post.whitened_programs(problem, settings)
     start = time.perf_counter()
     short = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=1)
     post.run_chains(programs, z0, np.eye(k), short, args=(c, L), chunk=args.samples)  # compiles both programs (the chunk length too)

@@ -251,7 +251,8 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
 
 
 @functools.lru_cache(maxsize=4)
-def _programs(problem: Problem, settings: SamplerSettings):
+def whitened_programs(problem: Problem, settings: SamplerSettings):
+    """`nuts_programs` of the posterior in `whitening`'s z, with args = (c, L)."""
     log_density = log_density_fn(problem)
     return nuts_programs(lambda z, args: log_density(args[0] + args[1] @ z), settings)
 
@@ -272,7 +273,7 @@ def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = Sampl
     called after warmup (n = warmup) and after each chunk of draws."""
     c, L = whitening(problem, t_best, jacobian)
     z0 = settings.jitter * np.random.default_rng(settings.seed).normal(size=(settings.chains, c.size))
-    (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(_programs(problem, settings), z0, np.eye(c.size), settings,
+    (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(whitened_programs(problem, settings), z0, np.eye(c.size), settings,
                                                                    args=(jnp.asarray(c), jnp.asarray(L)), progress=progress)
     u = c + z @ L.T
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
