@@ -13,7 +13,7 @@ import pytest
 
 from jaxtissue.io import InputError
 from jaxtissue.studies import posterior as post
-from jaxtissue.studies.calibration import FreeParameter
+from jaxtissue.studies.calibration import FitSettings, FreeParameter
 from jaxtissue.studies.priors import Prior, read_prior
 
 # ---- the sampler on a posterior known in closed form
@@ -200,12 +200,16 @@ class _RidgeInSeconds:
     10⁻⁵ wide, as k_c,max and k_a are."""
 
     free: tuple = (FreeParameter("k_c_max", 1e-6, 2.5e-5, "linear"), FreeParameter("k_a", 1e-6, 2.5e-5, "linear"))
+    fit: FitSettings = FitSettings()  # the solver that traces the ridge (`post.ridge_path`)
 
     def residuals(self, t):
         return jnp.stack([(t[0] - 5e-6) / 1e-6, (t[1] - 0.9 * t[0] - 1e-6) / 1e-7])
 
     def values_from_t(self, t):
         return t
+
+    def t_bounds(self):
+        return tuple(jnp.asarray(b) for b in zip(*(f.t_bounds for f in self.free)))
 
 
 def test_sample_is_at_home_in_any_units():
@@ -233,12 +237,16 @@ class _RidgeFromACorner:
     running out of the corner, as k_c,max–k_a of the Engelmayr problem does."""
 
     free: tuple = (FreeParameter("a", 0.0, 1.0, "linear"), FreeParameter("b", 0.0, 1.0, "linear"))
+    fit: FitSettings = FitSettings()  # the solver that traces the ridge (`post.ridge_path`)
 
     def residuals(self, t):
         return jnp.stack([(t[1] - 0.9 * t[0]) / 0.01, t[0] / 0.3])
 
     def values_from_t(self, t):
         return t
+
+    def t_bounds(self):
+        return tuple(jnp.asarray(b) for b in zip(*(f.t_bounds for f in self.free)))
 
 
 def test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds():

@@ -258,13 +258,46 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
     return nuts_programs(lambda z, args: log_density(args[0] + args[1] @ z), settings)
 
 
+def ridge_path(problem: Problem, t_best, jacobian, points: int = 3) -> np.ndarray:
+    """Points in u along the posterior's longest ridge, traced as the profile likelihood
+    traces it: the free parameter i that leads the principal axis of the Laplace
+    covariance (scaled by the flat prior's) pinned at ±1 … ±`points` of its Laplace SDs
+    from the optimum (inside the bounds), the others re-optimised by the fit's own
+    solver. Empty where no two parameters share that axis (no ridge between them)."""
+    from .calibration import _solver, pinned
+
+    cov = laplace_inverse_mass(problem, t_best, jacobian)
+    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    scale = (hi - lo) / np.sqrt(12.0)
+    axis = np.linalg.eigh(cov / np.outer(scale, scale))[1][:, -1]
+    if len(axis) < 2 or np.sort(np.abs(axis))[-2] < 0.3:
+        return np.zeros((0, len(axis)))
+    i = int(np.argmax(np.abs(axis)))
+    solve, sd, margin = _solver(problem, 1), np.sqrt(cov[i, i]), 0.01 * (hi[i] - lo[i])
+    path = []
+    for side in (-1, 1):
+        t = jnp.asarray(t_best)[None]
+        for n in range(1, points + 1):
+            x = float(np.clip(t_best[i] + side * n * sd, lo[i] + margin, hi[i] - margin))
+            t, chi2, *_ = solve(t, pinned(i, x, problem.fit.profile_max_steps))
+            if np.isfinite(float(chi2[0])):
+                path.append(np.asarray(u_from_t(problem.free, t[0])))
+    return np.asarray(path).reshape(-1, len(axis))
+
+
 def whitening(problem: Problem, t_best, jacobian) -> tuple[np.ndarray, np.ndarray]:
     """(c, L): the sampler runs in z with u = c + L z, c the optimum's u and L Lᵀ the
-    Laplace covariance of t (`laplace_inverse_mass`), so that the mass matrix starts at the
-    identity and every coordinate is O(1) whatever the parameters' units (the warmup
-    shrinks its estimates towards 10⁻³·I, which would swamp a coordinate 10⁻⁵ wide)."""
+    Laplace covariance of t (`laplace_inverse_mass`) plus the covariance of the optimum
+    and the `ridge_path` points, so that the mass matrix starts at the identity and every
+    coordinate is O(1) whatever the parameters' units (the warmup shrinks its estimates
+    towards 10⁻³·I, which would swamp a coordinate 10⁻⁵ wide). The Laplace Gaussian
+    knows a ridge's direction at the optimum, not its length; the path does."""
     c = np.asarray(u_from_t(problem.free, t_best))
-    return c, np.linalg.cholesky(laplace_inverse_mass(problem, t_best, jacobian))
+    cov = laplace_inverse_mass(problem, t_best, jacobian)
+    path = ridge_path(problem, t_best, jacobian)
+    if len(path):
+        cov = cov + np.cov(np.vstack([c, path]), rowvar=False)
+    return c, np.linalg.cholesky(cov)
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
