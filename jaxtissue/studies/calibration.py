@@ -225,7 +225,7 @@ def _compiled(problem: Problem, jacobian: bool):
 
 
 @functools.lru_cache(maxsize=8)
-def _solver(problem: Problem, batch: int):
+def lm_solver(problem: Problem, batch: int):
     """The problem's compiled LM solve (`lm_solve`) for `batch` starts at a time (cached: the
     fit and the profiles' points share it, and repeated fits do not recompile). One start
     at a time is not vmapped: under `vmap` the solve's Jacobian refresh would run every step."""
@@ -285,7 +285,7 @@ def fit(problem: Problem, progress=None) -> FitResult:
     """Multi-start Levenberg–Marquardt; `progress(n)` is called after each batch."""
     s = problem.fit
     starts = latin_hypercube(problem, s.starts, s.seed)
-    solve = _solver(problem, s.batch)
+    solve = lm_solver(problem, s.batch)
     runs = []
     for b in range(0, len(starts), s.batch):
         t0 = jnp.asarray(starts[b : b + s.batch])
@@ -355,7 +355,7 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
     others re-optimised from the previous point."""
     s = problem.fit
     lo, hi = (np.asarray(b) for b in problem.t_bounds())
-    solve = _solver(problem, 1)  # the fit's own when its batch is 1
+    solve = lm_solver(problem, 1)  # the fit's own when its batch is 1
     t_best = jnp.asarray(best.t)[None]
     level = best.chi2 + CHI2_95
     out = []

@@ -264,7 +264,7 @@ def ridge_path(problem: Problem, t_best, jacobian, points: int = 3) -> np.ndarra
     covariance (scaled by the flat prior's) pinned at ±1 … ±`points` of its Laplace SDs
     from the optimum (inside the bounds), the others re-optimised by the fit's own
     solver. Empty where no two parameters share that axis (no ridge between them)."""
-    from .calibration import _solver, pinned
+    from .calibration import lm_solver, pinned
 
     cov = laplace_inverse_mass(problem, t_best, jacobian)
     lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
@@ -273,7 +273,7 @@ def ridge_path(problem: Problem, t_best, jacobian, points: int = 3) -> np.ndarra
     if len(axis) < 2 or np.sort(np.abs(axis))[-2] < 0.3:
         return np.zeros((0, len(axis)))
     i = int(np.argmax(np.abs(axis)))
-    solve, sd, margin = _solver(problem, 1), np.sqrt(cov[i, i]), 0.01 * (hi[i] - lo[i])
+    solve, sd, margin = lm_solver(problem, 1), np.sqrt(cov[i, i]), 0.01 * (hi[i] - lo[i])
     path = []
     for side in (-1, 1):
         t = jnp.asarray(t_best)[None]
