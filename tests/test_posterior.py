@@ -163,6 +163,16 @@ def test_u_round_trips_and_stays_inside_the_bounds():
     np.testing.assert_allclose(np.asarray(post.t_from_u(FREE, post.u_from_t(FREE, mid))), np.asarray(mid), rtol=1e-12)
 
 
+def _unit_square_moments(log_density, n):
+    """Means and SDs of (a, b) under exp(log_density(a, b)) on [0, 1]², by the midpoint
+    rule on an n × n grid."""
+    grid = (np.arange(n) + 0.5) / n
+    a, b = np.meshgrid(grid, grid, indexing="ij")
+    w = np.exp(log_density(a, b))
+    mean = np.array([np.sum(w * a), np.sum(w * b)]) / np.sum(w)
+    return mean, np.sqrt(np.array([np.sum(w * a**2), np.sum(w * b**2)]) / np.sum(w) - mean**2)
+
+
 def test_a_posterior_piled_against_two_bounds_mixes():
     """A narrow ridge t₂ ≈ t₁ whose mass piles into the corner of the box at the lower
     bounds (as k_c,max and k_a of the Engelmayr problem do), where the soft box's walls
@@ -182,11 +192,7 @@ def test_a_posterior_piled_against_two_bounds_mixes():
     az = post.import_arviz()
     idata = az.from_dict(posterior={"t": t})
     ess, r_hat = (np.asarray(f(idata)["t"].values) for f in (az.ess, az.rhat))
-    grid = (np.arange(3000) + 0.5) / 3000
-    a, b = np.meshgrid(grid, grid, indexing="ij")
-    w = np.exp(np.asarray(log_likelihood(jnp.stack([a, b]))))
-    exact = np.array([np.sum(w * a), np.sum(w * b)]) / np.sum(w)
-    sd = np.sqrt(np.array([np.sum(w * a**2), np.sum(w * b**2)]) / np.sum(w) - exact**2)
+    exact, sd = _unit_square_moments(lambda a, b: np.asarray(log_likelihood(jnp.stack([a, b]))), 3000)
     print(f"corner ridge: means {t.reshape(-1, 2).mean(axis=0).round(4)} (quadrature {exact.round(4)}), ESS {ess.round()}, "
           f"R-hat {r_hat.round(4)}, {steps.mean():.1f} leapfrog steps a draw, {int(div.sum())} divergent")
     assert np.all(np.abs(t.reshape(-1, 2).mean(axis=0) - exact) < 4 * sd / np.sqrt(ess))
@@ -194,22 +200,30 @@ def test_a_posterior_piled_against_two_bounds_mixes():
 
 
 @dataclasses.dataclass(frozen=True)
-class _RidgeInSeconds:
-    """A stand-in calibration problem: θ₂ = 0.9 θ₁ + 1e-6 to ±1e-7, θ₁ = 5e-6 ± 1e-6 (rates
-    in 1/s, linear coordinates), flat priors in [1e-6, 2.5e-5]: a thin ridge in units
-    10⁻⁵ wide, as k_c,max and k_a are."""
+class _StandIn:
+    """What `post.sample` asks of a calibration problem, for linear free parameters
+    `free` and residuals given by a subclass."""
 
-    free: tuple = (FreeParameter("k_c_max", 1e-6, 2.5e-5, "linear"), FreeParameter("k_a", 1e-6, 2.5e-5, "linear"))
+    free: tuple = ()
     fit: FitSettings = FitSettings()  # the solver that traces the ridge (`post.ridge_path`)
-
-    def residuals(self, t):
-        return jnp.stack([(t[0] - 5e-6) / 1e-6, (t[1] - 0.9 * t[0] - 1e-6) / 1e-7])
 
     def values_from_t(self, t):
         return t
 
     def t_bounds(self):
         return tuple(jnp.asarray(b) for b in zip(*(f.t_bounds for f in self.free)))
+
+
+@dataclasses.dataclass(frozen=True)
+class _RidgeInSeconds(_StandIn):
+    """A stand-in calibration problem: θ₂ = 0.9 θ₁ + 1e-6 to ±1e-7, θ₁ = 5e-6 ± 1e-6 (rates
+    in 1/s, linear coordinates), flat priors in [1e-6, 2.5e-5]: a thin ridge in units
+    10⁻⁵ wide, as k_c,max and k_a are."""
+
+    free: tuple = (FreeParameter("k_c_max", 1e-6, 2.5e-5, "linear"), FreeParameter("k_a", 1e-6, 2.5e-5, "linear"))
+
+    def residuals(self, t):
+        return jnp.stack([(t[0] - 5e-6) / 1e-6, (t[1] - 0.9 * t[0] - 1e-6) / 1e-7])
 
 
 def test_sample_is_at_home_in_any_units():
@@ -231,22 +245,15 @@ def test_sample_is_at_home_in_any_units():
 
 
 @dataclasses.dataclass(frozen=True)
-class _RidgeFromACorner:
+class _RidgeFromACorner(_StandIn):
     """A stand-in calibration problem whose optimum lies on two bounds: θ₂ = 0.9 θ₁ to
     ±0.01, θ₁ = 0 ± 0.3 (half of it outside the box), flat priors in [0, 1]: a thin ridge
     running out of the corner, as k_c,max–k_a of the Engelmayr problem does."""
 
     free: tuple = (FreeParameter("a", 0.0, 1.0, "linear"), FreeParameter("b", 0.0, 1.0, "linear"))
-    fit: FitSettings = FitSettings()  # the solver that traces the ridge (`post.ridge_path`)
 
     def residuals(self, t):
         return jnp.stack([(t[1] - 0.9 * t[0]) / 0.01, t[0] / 0.3])
-
-    def values_from_t(self, t):
-        return t
-
-    def t_bounds(self):
-        return tuple(jnp.asarray(b) for b in zip(*(f.t_bounds for f in self.free)))
 
 
 def test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds():
@@ -258,11 +265,7 @@ def test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds():
     draws = post.sample(problem, t_best, jax.jacfwd(problem.residuals)(t_best), post.SamplerSettings(chains=4, warmup=200, samples=250))
     az = post.import_arviz()
     ess = np.asarray(az.ess(az.from_dict(posterior={"t": draws.t}))["t"].values)
-    grid = (np.arange(2000) + 0.5) / 2000
-    a, b = np.meshgrid(grid, grid, indexing="ij")
-    w = np.exp(-0.5 * (((b - 0.9 * a) / 0.01) ** 2 + (a / 0.3) ** 2))
-    exact = np.array([np.sum(w * a), np.sum(w * b)]) / np.sum(w)
-    sd = np.sqrt(np.array([np.sum(w * a**2), np.sum(w * b**2)]) / np.sum(w) - exact**2)
+    exact, sd = _unit_square_moments(lambda a, b: -0.5 * (((b - 0.9 * a) / 0.01) ** 2 + (a / 0.3) ** 2), 2000)
     mean = draws.t.reshape(-1, 2).mean(axis=0)
     print(f"ridge out of a corner: means {mean.round(4)} (quadrature {exact.round(4)}), bulk ESS {ess.round()}, "
           f"{draws.leapfrog_steps.mean():.1f} leapfrog steps a draw, {int(draws.diverging.sum())} divergent")

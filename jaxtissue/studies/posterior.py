@@ -258,15 +258,15 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
     return nuts_programs(lambda z, args: log_density(args[0] + args[1] @ z), settings)
 
 
-def ridge_path(problem: Problem, t_best, jacobian, points: int = 3) -> np.ndarray:
+def ridge_path(problem: Problem, t_best, cov, points: int = 3) -> np.ndarray:
     """Points in u along the posterior's longest ridge, traced as the profile likelihood
     traces it: the free parameter i that leads the principal axis of the Laplace
-    covariance (scaled by the flat prior's) pinned at ±1 … ±`points` of its Laplace SDs
-    from the optimum (inside the bounds), the others re-optimised by the fit's own
-    solver. Empty where no two parameters share that axis (no ridge between them)."""
+    covariance `cov` (`laplace_inverse_mass`, scaled by the flat prior's) pinned at ±1 …
+    ±`points` of its Laplace SDs from the optimum (inside the bounds), the others
+    re-optimised by the fit's own solver. Empty where no two parameters share that axis
+    (no ridge between them)."""
     from .calibration import lm_solver, pinned
 
-    cov = laplace_inverse_mass(problem, t_best, jacobian)
     lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
     scale = (hi - lo) / np.sqrt(12.0)
     axis = np.linalg.eigh(cov / np.outer(scale, scale))[1][:, -1]
@@ -294,7 +294,7 @@ def whitening(problem: Problem, t_best, jacobian) -> tuple[np.ndarray, np.ndarra
     knows a ridge's direction at the optimum, not its length; the path does."""
     c = np.asarray(u_from_t(problem.free, t_best))
     cov = laplace_inverse_mass(problem, t_best, jacobian)
-    path = ridge_path(problem, t_best, jacobian)
+    path = ridge_path(problem, t_best, cov)
     if len(path):
         cov = cov + np.cov(np.vstack([c, path]), rowvar=False)
     return c, np.linalg.cholesky(cov)
