@@ -1,12 +1,16 @@
-"""How well the sampler's starting metric fits the Engelmayr posterior: the covariance
-of the shipped posterior's draws (jaxtissue/studies/engelmayr2005_posterior) in the
-sampler's whitened coordinates z, u = c + L z, for three choices of L Lᵀ at the fit's
-optimum (that folder's fitted.toml). Eigenvalues all 1 would be a perfect fit; their
-ratio (the condition number) is what NUTS pays for in step size and trajectory length.
+"""How well the sampler's coordinates fit the Engelmayr posterior: the covariance of
+the shipped posterior's draws (jaxtissue/studies/engelmayr2005_posterior) in the
+sampler's whitened coordinates z, for three choices made at the fit's optimum (that
+folder's fitted.toml). Eigenvalues all 1 would be a perfect fit; their ratio (the
+condition number) is what NUTS pays for in step size and trajectory length.
 
-* the Laplace covariance in u, (Dᵀ JᵀJ D + Σ₀⁻¹)⁻¹ with D = dt/du at the optimum;
-* the Laplace covariance of t, (JᵀJ + Σ₀⁻¹)⁻¹ (`posterior.laplace_inverse_mass`);
-* that plus the covariance of the ridge's profile path (`posterior.whitening`).
+* u = c + L z, L Lᵀ the Laplace covariance in u, (Dᵀ JᵀJ D + Σ₀⁻¹)⁻¹ with D = dt/du;
+* u = c + L z, L Lᵀ the Laplace covariance of t, (JᵀJ + Σ₀⁻¹)⁻¹ (`posterior.laplace_inverse_mass`);
+* the ridge coordinates `calibrate --posterior` samples in (`posterior.whitening`).
+
+It also prints the ridge's profile (the leader's knots and χ²) and, at ten draws spread
+over k_c,max, the posterior's narrowest local standard deviation in u (the Hessian of
+ln p by central differences of its gradient) and its direction.
 
     python benchmarks/posterior_metric.py
 """
@@ -31,24 +35,45 @@ SHIPPED = ROOT / "jaxtissue" / "studies" / "engelmayr2005_posterior"
 
 def main():
     problem = read_problem(ROOT / "calibrate" / "engelmayr2005.toml")
+    names = problem.names
     fitted = read_params_toml(SHIPPED / "fitted.toml")
-    t_best = np.asarray(problem.t_from_values(jnp.asarray([getattr(fitted, n) for n in problem.names])))
+    t_best = np.asarray(problem.t_from_values(jnp.asarray([getattr(fitted, n) for n in names])))
     J = np.asarray(jax.jit(jax.jacfwd(problem.residuals))(jnp.asarray(t_best)))
-    values = post.read_saved(SHIPPED).values.reshape(-1, len(problem.names))
-    u = np.asarray(post.u_from_t(problem.free, jax.vmap(problem.t_from_values)(jnp.asarray(values))))
-    draws = np.cov(u, rowvar=False)
+    values = post.read_saved(SHIPPED).values.reshape(-1, len(names))
+    t = np.asarray(jax.vmap(problem.t_from_values)(jnp.asarray(values)))
+    u = np.asarray(post.u_from_t(problem.free, jnp.asarray(t)))
+    print(f"{len(u)} shipped draws; optimum {dict(zip(names, np.round(np.exp(t_best), 9)))}")
 
     lo, hi = (np.asarray(b) for b in problem.t_bounds())
     D = np.diag(np.exp(np.asarray(post.log_dt_du(problem.free, post.u_from_t(problem.free, t_best)))))
     in_u = np.linalg.inv(D @ J.T @ J @ D + np.diag(12.0 / (hi - lo) ** 2))
     of_t = post.laplace_inverse_mass(problem, t_best, J)
-    _, L = post.whitening(problem, t_best, J)
-    print(f"{len(u)} shipped draws; optimum {dict(zip(problem.names, np.round(np.exp(t_best), 9)))}")
-    for name, metric in (("Laplace covariance in u", in_u), ("Laplace covariance of t", of_t), ("... plus the ridge path", L @ L.T)):
-        inverse = np.linalg.inv(np.linalg.cholesky(metric))
-        w = np.linalg.eigvalsh(inverse @ draws @ inverse.T)
-        print(f"{name:26s} eigenvalues of the draws' covariance in z {np.array2string(w, precision=3)}, "
-              f"condition number {w.max() / w.min():.0f}")
+    white = post.whitening(problem, t_best, J)
+    ridge = white.ridge
+    print(f"ridge: leader {names[ridge.leader]}, sheared {post.straightens(ridge)}; knots (ln) {np.round(ridge.x, 2)}, "
+          f"profile chi2 {np.round(ridge.chi2, 2)}")
+    c_opt = np.asarray(post.u_from_t(problem.free, jnp.asarray(t_best)))
+    for name, c, L, w in (("Laplace covariance in u", c_opt, np.linalg.cholesky(in_u), u),
+                          ("Laplace covariance of t", c_opt, np.linalg.cholesky(of_t), u),
+                          ("ridge coordinates", white.c, white.L, np.asarray(post.w_from_u(problem.free, ridge.arrays(), jnp.asarray(u))))):
+        z = np.linalg.solve(L, (w - c).T).T
+        e = np.linalg.eigvalsh(np.cov(z, rowvar=False))
+        print(f"{name:24s} eigenvalues of the draws' covariance in z {np.array2string(e, precision=3)}, "
+              f"condition number {e.max() / e.min():.0f}")
+
+    grad = jax.jit(jax.vmap(jax.grad(post.log_density_fn(problem))))
+    k, h = len(names), 1e-4
+    i_kc = names.index("k_c_max") if "k_c_max" in names else 0
+    picks = np.argsort(t[:, i_kc])[np.linspace(0, len(t) - 1, 10).astype(int)]
+    print(f"narrowest local SD of the posterior in u, at draws spread over {names[i_kc]}:")
+    for j in picks:
+        steps = np.concatenate([u[j] + h * s * np.eye(k)[m] for m in range(k) for s in (1, -1)]).reshape(-1, k)
+        g = np.asarray(grad(jnp.asarray(steps))).reshape(k, 2, k)
+        H = -(g[:, 0] - g[:, 1]) / (2 * h)
+        e, V = np.linalg.eigh(0.5 * (H + H.T))
+        v = V[:, -1] * np.sign(V[np.argmax(np.abs(V[:, -1])), -1])
+        print(f"  at {', '.join(f'{n} {x:.2f}' for n, x in zip(names, t[j]))}: {1 / np.sqrt(e[-1]):.4f} "
+              f"along {np.array2string(v, precision=2)}")
 
 
 if __name__ == "__main__":

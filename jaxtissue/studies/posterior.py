@@ -16,10 +16,13 @@ the soft box keeps the ridge straight and of one width. The gradient of ln p com
 from forward-mode differentiation of the residuals (a handful of tangents through the
 coupled solve), wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 
-Chains run batched under `vmap` (split over the devices when there are several, e.g.
-one per CPU core: `sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of
-the step size and a dense mass matrix, which follows the k_c,max–k_a ridge of the
-Engelmayr problem). R-hat, effective sample sizes and quantiles are ArviZ's.
+The sampler's coordinates follow the posterior's longest ridge as the profile
+likelihood traces it (`trace_ridge`: the leading parameter pinned, the others
+re-optimised), straightened by a shear (`u_from_w`) and whitened (`whitening`). Chains
+run batched under `vmap` (split over the devices when there are several, e.g. one per
+CPU core: `sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of
+the step size and a dense mass matrix). R-hat, effective sample sizes and quantiles
+are ArviZ's.
 """
 
 from __future__ import annotations
@@ -59,7 +62,9 @@ class SamplerSettings:
     seed: int = 0
     target_acceptance: float = 0.8
     max_tree_depth: int = 6  # at most 2⁶ − 1 leapfrog steps a draw
-    jitter: float = 1.0  # spread of the chains' starts, in Laplace standard deviations
+    warmup_tree_depth: int = 4  # at most 2⁴ − 1 a warmup draw: early steps must not run to the cap
+    initial_step_size: float = 0.1  # the warmup's first, in the whitened coordinates z
+    jitter: float = 0.5  # spread of the chains' starts around the ridge, in z (`whitening`)
 
 
 # ---------------------------------------------------------------------------------------
@@ -190,8 +195,9 @@ def nuts_programs(log_density, settings: SamplerSettings):
     def adapt(key, u0, imm0, args):
         warmup = blackjax.window_adaptation(blackjax.nuts, lambda u: log_density(u, args), is_mass_matrix_diagonal=False,
                                             initial_inverse_mass_matrix=imm0, imm_shrinkage_to_previous=10.0,
+                                            initial_step_size=settings.initial_step_size,
                                             target_acceptance_rate=settings.target_acceptance,
-                                            max_num_doublings=settings.max_tree_depth)
+                                            max_num_doublings=settings.warmup_tree_depth)
         (state, parameters), _ = warmup.run(key, u0, num_steps=settings.warmup)
         return state, parameters["step_size"], parameters["inverse_mass_matrix"]
 
@@ -251,68 +257,194 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
     return arrays, np.asarray(step_size), np.asarray(imm), seconds
 
 
-@functools.lru_cache(maxsize=4)
-def whitened_programs(problem: Problem, settings: SamplerSettings):
-    """`nuts_programs` of the posterior in `whitening`'s z, with args = (c, L)."""
-    log_density = log_density_fn(problem)
-    return nuts_programs(lambda z, args: log_density(args[0] + args[1] @ z), settings)
+class Ridge(NamedTuple):
+    """The posterior's longest ridge, traced as a profile likelihood traces it: the free
+    parameter `leader` pinned at the knots `x` (its fit coordinate, increasing), the
+    others re-optimised: `t` (knots, k) the profile optimum, `chi2` its χ². `y` (knots, k)
+    the optimum in u of every parameter but the leader (whose column is zero) and `slope`
+    dy/dx: the shear `u_from_w` that straightens the ridge; all zero where it does not."""
+
+    leader: int
+    x: np.ndarray
+    t: np.ndarray
+    chi2: np.ndarray
+    y: np.ndarray
+    slope: np.ndarray
+
+    def arrays(self):
+        """(leader, x, y, slope) as JAX arrays: what `u_from_w` takes inside a program
+        (a lone knot, the optimum alone, padded to two: no shear)."""
+        if len(self.x) < 2:
+            flat = jnp.zeros((2, self.y.shape[1]))
+            return jnp.asarray(self.leader), jnp.asarray([self.x[0], self.x[0] + 1.0]), flat, flat
+        return jnp.asarray(self.leader), jnp.asarray(self.x), jnp.asarray(self.y), jnp.asarray(self.slope)
 
 
-def ridge_path(problem: Problem, t_best, cov, points: int = 3) -> np.ndarray:
-    """Points in u along the posterior's longest ridge, traced as the profile likelihood
-    traces it: the free parameter i that leads the principal axis of the Laplace
-    covariance `cov` (`laplace_inverse_mass`, scaled by the flat prior's) pinned at ±1 …
-    ±`points` of its Laplace SDs from the optimum (inside the bounds), the others
-    re-optimised by the fit's own solver. Empty where no two parameters share that axis
-    (no ridge between them)."""
+def _hermite(x, knots, y, slope):
+    """The cubic Hermite interpolant of (y, slope) at the knots (C¹), straight beyond them."""
+    j = jnp.clip(jnp.searchsorted(knots, x) - 1, 0, knots.shape[0] - 2)
+    h = knots[j + 1] - knots[j]
+    s = jnp.clip((x - knots[j]) / h, 0.0, 1.0)
+    inside = (((2 * s - 3) * s**2 + 1) * y[j] + ((s - 2) * s + 1) * s * h * slope[j]
+              + (3 - 2 * s) * s**2 * y[j + 1] + (s - 1) * s**2 * h * slope[j + 1])
+    below = y[0] + slope[0] * (x - knots[0])
+    above = y[-1] + slope[-1] * (x - knots[-1])
+    return jnp.where(x < knots[0], below, jnp.where(x > knots[-1], above, inside))
+
+
+def _knot_slopes(x, y):
+    """dy/dx at the knots: the spacing-weighted mean of the neighbouring secants."""
+    d = np.diff(y, axis=0) / np.diff(x)[:, None]
+    if len(x) == 2:
+        return np.concatenate([d, d])
+    left, right = np.diff(x)[:-1, None], np.diff(x)[1:, None]
+    return np.concatenate([d[:1], (right * d[:-1] + left * d[1:]) / (left + right), d[-1:]])
+
+
+def u_from_w(free, ridge_arrays, w):
+    """u of the ridge coordinates w: the leader's u_i = w_i, every other u_j = w_j +
+    y_j(t_i), its profile optimum at the leader's t_i (`Ridge`). A shear (unit
+    Jacobian) that straightens a curved ridge along the leader's axis."""
+    leader, x, y, slope = ridge_arrays
+    t_leader = jnp.take(t_from_u(free, w), leader, axis=-1)
+    return w + _hermite(t_leader, x, y, slope)
+
+
+def w_from_u(free, ridge_arrays, u):
+    """`u_from_w` inverted (the leader's coordinate is the same in both)."""
+    leader, x, y, slope = ridge_arrays
+    t_leader = jnp.take(t_from_u(free, u), leader, axis=-1)
+    return u - jnp.vectorize(lambda t_i: _hermite(t_i, x, y, slope), signature="()->(k)")(t_leader)
+
+
+def trace_ridge(problem: Problem, t_best, cov, per_side: int = 8) -> Ridge:
+    """The ridge along the principal axis of the Laplace covariance `cov` (scaled by the
+    flat prior's): each of the (at most two) parameters that lead that axis is pinned at
+    `per_side` points from the optimum to each of its bounds and the others re-optimised
+    by the fit's solver, each from the previous point. The leader is the first whose
+    profile keeps the others 2 % of their ranges off their bounds, and its profile is
+    the shear; where none does, the ridge runs into a corner of the box, which no smooth
+    shear follows, and the first candidate's profile is kept without one."""
     from .calibration import lm_solver, pinned
 
     lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
     scale = (hi - lo) / np.sqrt(12.0)
-    axis = np.linalg.eigh(cov / np.outer(scale, scale))[1][:, -1]
-    if len(axis) < 2 or np.sort(np.abs(axis))[-2] < 0.3:
-        return np.zeros((0, len(axis)))
-    i = int(np.argmax(np.abs(axis)))
-    solve, sd, margin = lm_solver(problem, 1), np.sqrt(cov[i, i]), 0.01 * (hi[i] - lo[i])
-    path = []
-    for side in (-1, 1):
-        t = jnp.asarray(t_best)[None]
-        for n in range(1, points + 1):
-            x = float(np.clip(t_best[i] + side * n * sd, lo[i] + margin, hi[i] - margin))
-            t, chi2, *_ = solve(t, pinned(i, x, problem.fit.profile_max_steps))
-            if np.isfinite(float(chi2[0])):
-                path.append(np.asarray(u_from_t(problem.free, t[0])))
-    return np.asarray(path).reshape(-1, len(axis))
+    axis = np.abs(np.linalg.eigh(cov / np.outer(scale, scale))[1][:, -1])
+    order = np.argsort(-axis)
+    candidates = [int(i) for i in order[:2] if axis[i] >= 0.3] or [int(order[0])]
+    solve, steps = lm_solver(problem, 1), problem.fit.profile_max_steps
+    traced = []
+    for i in candidates:
+        margin = 0.01 * (hi[i] - lo[i])
+        t, chi2, *_ = solve(jnp.asarray(t_best)[None], pinned(i, float(t_best[i]), steps))
+        points = [(float(t_best[i]), np.asarray(t_best, float), float(chi2[0]))]
+        for end in (lo[i] + margin, hi[i] - margin):
+            if abs(end - t_best[i]) <= margin:
+                continue
+            t = jnp.asarray(t_best)[None]
+            for n in range(1, per_side + 1):
+                x = float(t_best[i] + n / per_side * (end - t_best[i]))
+                t, chi2, *_ = solve(t, pinned(i, x, steps))
+                if not np.isfinite(float(chi2[0])):
+                    break
+                points.append((x, np.asarray(t[0]), float(chi2[0])))
+        points.sort(key=lambda p: p[0])
+        x, t, chi2 = (np.array([p[n] for p in points]) for n in range(3))
+        flat = np.zeros((len(x), len(t_best)))
+        others, room = np.arange(len(t_best)) != i, 0.02 * (hi - lo)
+        if len(x) > 1 and np.all((t[:, others] > lo[others] + room[others]) & (t[:, others] < hi[others] - room[others])):
+            y = np.array(u_from_t(problem.free, jnp.asarray(t)))
+            y[:, i] = 0.0
+            return Ridge(i, x, t, chi2, y, _knot_slopes(x, y))
+        traced.append(Ridge(i, x, t, chi2, flat, flat))
+    return traced[0]
 
 
-def whitening(problem: Problem, t_best, jacobian) -> tuple[np.ndarray, np.ndarray]:
-    """(c, L): the sampler runs in z with u = c + L z, c the optimum's u and L Lᵀ the
-    Laplace covariance of t (`laplace_inverse_mass`) plus the covariance of the optimum
-    and the `ridge_path` points, so that the mass matrix starts at the identity and every
-    coordinate is O(1) whatever the parameters' units (the warmup shrinks its estimates
-    towards 10⁻³·I, which would swamp a coordinate 10⁻⁵ wide). The Laplace Gaussian
-    knows a ridge's direction at the optimum, not its length; the path does."""
-    c = np.asarray(u_from_t(problem.free, t_best))
+def straightens(ridge: Ridge) -> bool:
+    """Whether `ridge` carries a shear (`trace_ridge`)."""
+    return bool(np.any(ridge.y) or np.any(ridge.slope))
+
+
+class Whitening(NamedTuple):
+    """The sampler's coordinates z: u = `u_from_w`(ridge, c + L z), and the chains'
+    starts `z0` along the ridge."""
+
+    ridge: Ridge
+    c: np.ndarray
+    L: np.ndarray
+    z0: np.ndarray
+
+    def args(self):
+        """(c, L, ridge arrays) as JAX arrays: the `args` of `whitened_programs`, `u_from_z`."""
+        return jnp.asarray(self.c), jnp.asarray(self.L), self.ridge.arrays()
+
+
+def u_from_z(free, args, z):
+    """u of the sampler's coordinates z, args = `Whitening.args()`."""
+    c, L, ridge_arrays = args
+    return u_from_w(free, ridge_arrays, c + L @ z)
+
+
+def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float = 0.5, seed: int = 0) -> Whitening:
+    """The sampler's coordinates (docs/numerics.md, "Posterior sampling"): the ridge
+    (`trace_ridge`), straightened by `u_from_w` where it can be, then w = c + L z with c
+    the ridge's centre and L Lᵀ the Laplace covariance of t (`laplace_inverse_mass`)
+    with the leader's variance raised to that of its profile posterior along the ridge
+    (exp(−χ²/2) × prior at the knots): the Laplace Gaussian knows a ridge's direction at
+    the optimum, not its length. With the shear, the others' offsets from the ridge get
+    their Laplace covariance given the leader; without it, the added variance runs along
+    the Laplace covariance's own ridge direction. Every coordinate of z is O(1) whatever
+    the parameters' units (the warmup shrinks its estimates towards 10⁻³·I, which would
+    swamp a coordinate 10⁻⁵ wide). The chains start on the ridge with the leader at
+    evenly spaced quantiles of its profile posterior, plus N(0, jitter²·I) in z:
+    over-dispersed along the longest direction, where R-hat must see chains disagree."""
     cov = laplace_inverse_mass(problem, t_best, jacobian)
-    path = ridge_path(problem, t_best, cov)
-    if len(path):
-        cov = cov + np.cov(np.vstack([c, path]), rowvar=False)
-    return c, np.linalg.cholesky(cov)
+    ridge = trace_ridge(problem, t_best, cov)
+    i, k = ridge.leader, len(t_best)
+    f = problem.free[i]
+    log_p = -0.5 * ridge.chi2 + np.asarray(f.prior_density.log_density(f.from_t(jnp.asarray(ridge.x))))
+    log_p = log_p + (ridge.x if f.transform == "log" else 0.0)
+    p = np.exp(log_p - log_p.max()) * (np.gradient(ridge.x) if len(ridge.x) > 1 else 1.0)
+    p /= p.sum()
+    mean = float(p @ ridge.x)
+    added = max(float(p @ (ridge.x - mean) ** 2) - cov[i, i], 0.0)
+    direction = cov[:, i] / cov[i, i]
+    if straightens(ridge):
+        others = np.arange(k) != i
+        cov = cov - np.outer(direction, cov[i]) + np.diag(np.where(others, 0.0, cov[i, i]))
+        direction = np.eye(k)[i]
+    cov = cov + added * np.outer(direction, direction)
+    # the centre and the starts: points of the profile, leader at its mean and quantiles
+    quantiles = np.interp((np.arange(chains) + 0.5) / chains, np.cumsum(p) - 0.5 * p, ridge.x) if len(ridge.x) > 1 else np.full(chains, mean)
+    along = np.stack([np.interp(np.append(mean, quantiles), ridge.x, ridge.t[:, j]) for j in range(k)], axis=-1) if len(ridge.x) > 1 \
+        else np.tile(np.asarray(t_best, float), (chains + 1, 1))
+    u = jnp.asarray(u_from_t(problem.free, jnp.asarray(along)))
+    w = np.asarray(w_from_u(problem.free, ridge.arrays(), u))
+    c = w[0]
+    L = np.linalg.cholesky(cov)
+    z0 = np.linalg.solve(L, (w[1:] - c).T).T + jitter * np.random.default_rng(seed).normal(size=(chains, k))
+    return Whitening(ridge, c, L, z0)
+
+
+@functools.lru_cache(maxsize=4)
+def whitened_programs(problem: Problem, settings: SamplerSettings):
+    """`nuts_programs` of the posterior in `whitening`'s z, with args = `Whitening.args()`."""
+    log_density = log_density_fn(problem)
+    return nuts_programs(lambda z, args: log_density(u_from_z(problem.free, args, z)), settings)
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
     """NUTS draws of the posterior in `whitening`'s coordinates around `t_best`, the
-    fit's optimum, the chains started from N(0, jitter²·I) there: dispersed over the
-    Laplace approximation, so that R-hat can see chains that disagree. `progress(n)` is
-    called after warmup (n = warmup) and after each chunk of draws."""
-    c, L = whitening(problem, t_best, jacobian)
-    z0 = settings.jitter * np.random.default_rng(settings.seed).normal(size=(settings.chains, c.size))
-    (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(whitened_programs(problem, settings), z0, np.eye(c.size), settings,
-                                                                   args=(jnp.asarray(c), jnp.asarray(L)), progress=progress)
-    u = c + z @ L.T
+    fit's optimum. `progress(n)` is called after warmup (n = warmup) and after each
+    chunk of draws."""
+    white = whitening(problem, t_best, jacobian, settings.chains, settings.jitter, settings.seed)
+    args = white.args()
+    (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(whitened_programs(problem, settings), white.z0, np.eye(white.c.size),
+                                                                   settings, args=args, progress=progress)
+    u = np.asarray(jax.vmap(jax.vmap(lambda z: u_from_z(problem.free, args, z)))(jnp.asarray(z)))
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
     values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
-    return Draws(u, t, values, lp, div, acc, steps, step_size, L @ imm @ L.T, seconds)
+    return Draws(u, t, values, lp, div, acc, steps, step_size, white.L @ imm @ white.L.T, seconds)
 
 
 def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndarray:
