@@ -67,7 +67,7 @@ def main():
     post.run_chains(programs, z0, np.eye(k), short, args=sampler_args, chunk=args.samples)  # compiles both programs (the chunk length too)
     compile_s = time.perf_counter() - start
     (z, _, div, _, steps), _, _, seconds = post.run_chains(programs, z0, np.eye(k), settings, args=sampler_args, chunk=args.samples)
-    u = np.asarray(jax.vmap(jax.vmap(lambda z: post.u_from_z(problem.free, sampler_args, z)))(jnp.asarray(z)))
+    u = np.asarray(post.u_from_z(problem.free, sampler_args, jnp.asarray(z)))
     nuts_s = seconds["warmup"] + seconds["sampling"]
     az = post.import_arviz()
     ess_nuts = np.asarray(az.ess(az.from_dict(posterior={"u": u}), method="bulk")["u"].values)
@@ -79,8 +79,7 @@ def main():
     import emcee
 
     log_density = jax.jit(jax.vmap(post.log_density_fn(problem)))
-    walkers = np.asarray(jax.vmap(lambda z: post.u_from_z(problem.free, sampler_args, z))(
-        jnp.asarray(0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)))))
+    walkers = np.asarray(post.u_from_z(problem.free, sampler_args, jnp.asarray(0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)))))
     start = time.perf_counter()
     jax.block_until_ready(log_density(jnp.asarray(walkers)))
     compile_e = time.perf_counter() - start

@@ -289,7 +289,7 @@ class _CurvedRidge(_StandIn):
 def test_sample_straightens_a_curved_ridge():
     """The ridge coordinates (`post.trace_ridge`, `post.u_from_w`) follow the profile of
     the leading parameter, so NUTS sees a straight ridge: means against quadrature, ESS,
-    leapfrog steps (a linear metric alone takes ~30 a draw here)."""
+    leapfrog steps a draw."""
     problem = _CurvedRidge()
     t_best = jnp.zeros(2)
     draws = post.sample(problem, t_best, jax.jacfwd(problem.residuals)(t_best), post.SamplerSettings(chains=4, warmup=200, samples=250))

@@ -301,20 +301,24 @@ def _knot_slopes(x, y):
     return np.concatenate([d[:1], (right * d[:-1] + left * d[1:]) / (left + right), d[-1:]])
 
 
+def _shear(free, ridge_arrays, v):
+    """y(t_i) of `Ridge` at the leader's t_i of v (u or w: the leader's coordinate is
+    the same in both), for v of shape (..., k)."""
+    leader, x, y, slope = ridge_arrays
+    t_leader = jnp.take(t_from_u(free, v), leader, axis=-1)
+    return jnp.vectorize(lambda t_i: _hermite(t_i, x, y, slope), signature="()->(k)")(t_leader)
+
+
 def u_from_w(free, ridge_arrays, w):
     """u of the ridge coordinates w: the leader's u_i = w_i, every other u_j = w_j +
     y_j(t_i), its profile optimum at the leader's t_i (`Ridge`). A shear (unit
     Jacobian) that straightens a curved ridge along the leader's axis."""
-    leader, x, y, slope = ridge_arrays
-    t_leader = jnp.take(t_from_u(free, w), leader, axis=-1)
-    return w + _hermite(t_leader, x, y, slope)
+    return w + _shear(free, ridge_arrays, w)
 
 
 def w_from_u(free, ridge_arrays, u):
-    """`u_from_w` inverted (the leader's coordinate is the same in both)."""
-    leader, x, y, slope = ridge_arrays
-    t_leader = jnp.take(t_from_u(free, u), leader, axis=-1)
-    return u - jnp.vectorize(lambda t_i: _hermite(t_i, x, y, slope), signature="()->(k)")(t_leader)
+    """`u_from_w` inverted."""
+    return u - _shear(free, ridge_arrays, u)
 
 
 def trace_ridge(problem: Problem, t_best, cov, per_side: int = 8) -> Ridge:
@@ -380,9 +384,9 @@ class Whitening(NamedTuple):
 
 
 def u_from_z(free, args, z):
-    """u of the sampler's coordinates z, args = `Whitening.args()`."""
+    """u of the sampler's coordinates z (shape (..., k)), args = `Whitening.args()`."""
     c, L, ridge_arrays = args
-    return u_from_w(free, ridge_arrays, c + L @ z)
+    return u_from_w(free, ridge_arrays, c + z @ L.T)
 
 
 def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float = 0.5, seed: int = 0) -> Whitening:
@@ -415,9 +419,8 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
         direction = np.eye(k)[i]
     cov = cov + added * np.outer(direction, direction)
     # the centre and the starts: points of the profile, leader at its mean and quantiles
-    quantiles = np.interp((np.arange(chains) + 0.5) / chains, np.cumsum(p) - 0.5 * p, ridge.x) if len(ridge.x) > 1 else np.full(chains, mean)
-    along = np.stack([np.interp(np.append(mean, quantiles), ridge.x, ridge.t[:, j]) for j in range(k)], axis=-1) if len(ridge.x) > 1 \
-        else np.tile(np.asarray(t_best, float), (chains + 1, 1))
+    quantiles = np.interp((np.arange(chains) + 0.5) / chains, np.cumsum(p) - 0.5 * p, ridge.x)
+    along = np.stack([np.interp(np.append(mean, quantiles), ridge.x, ridge.t[:, j]) for j in range(k)], axis=-1)
     u = jnp.asarray(u_from_t(problem.free, jnp.asarray(along)))
     w = np.asarray(w_from_u(problem.free, ridge.arrays(), u))
     c = w[0]
@@ -441,7 +444,7 @@ def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = Sampl
     args = white.args()
     (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(whitened_programs(problem, settings), white.z0, np.eye(white.c.size),
                                                                    settings, args=args, progress=progress)
-    u = np.asarray(jax.vmap(jax.vmap(lambda z: u_from_z(problem.free, args, z)))(jnp.asarray(z)))
+    u = np.asarray(u_from_z(problem.free, args, jnp.asarray(z)))
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
     values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
     return Draws(u, t, values, lp, div, acc, steps, step_size, white.L @ imm @ white.L.T, seconds)
