@@ -165,7 +165,7 @@ class Draws(NamedTuple):
     acceptance_rate: np.ndarray
     leapfrog_steps: np.ndarray
     step_size: np.ndarray  # (chains,)
-    inverse_mass_matrix: np.ndarray  # (chains, k, k)
+    inverse_mass_matrix: np.ndarray  # (chains, k, k), in the ridge coordinates w (`u_from_w`), not u
     seconds: dict  # "warmup", "sampling"
 
 
