@@ -49,13 +49,13 @@ def main():
     in_u = np.linalg.inv(D @ J.T @ J @ D + np.diag(12.0 / (hi - lo) ** 2))
     of_t = post.laplace_inverse_mass(problem, t_best, J)
     white = post.whitening(problem, t_best, J)
-    ridge = white.ridge
-    print(f"ridge: leader {names[ridge.leader]}, sheared {post.straightens(ridge)}; knots (ln) {np.round(ridge.x, 2)}, "
-          f"profile chi2 {np.round(ridge.chi2, 2)}")
+    for n, ridge in enumerate(white.ridges):
+        print(f"{('first', 'second')[n]} ridge: leader {names[ridge.leader]}, sheared {post.straightens(ridge)}; "
+              f"knots (ln) {np.round(ridge.x, 2)}, profile chi2 {np.round(ridge.chi2, 2)}")
     c_opt = np.asarray(post.u_from_t(problem.free, jnp.asarray(t_best)))
     for name, c, L, w in (("Laplace covariance in u", c_opt, np.linalg.cholesky(in_u), u),
                           ("Laplace covariance of t", c_opt, np.linalg.cholesky(of_t), u),
-                          ("ridge coordinates", white.c, white.L, np.asarray(post.w_from_u(problem.free, ridge.arrays(), jnp.asarray(u))))):
+                          ("ridge coordinates", white.c, white.L, np.asarray(post.w_from_u(problem.free, white.args()[2], jnp.asarray(u))))):
         z = np.linalg.solve(L, (w - c).T).T
         e = np.linalg.eigvalsh(np.cov(z, rowvar=False))
         print(f"{name:24s} eigenvalues of the draws' covariance in z {np.array2string(e, precision=3)}, "

@@ -303,31 +303,83 @@ def test_sample_straightens_a_curved_ridge():
     assert np.all(ess > 250) and draws.leapfrog_steps.mean() < 7 and draws.diverging.sum() == 0
 
 
+@dataclasses.dataclass(frozen=True)
+class _CurvedSheet(_StandIn):
+    """A stand-in calibration problem whose ridge bends along two parameters, as the
+    Engelmayr k_c,max–k_a ridge bends with k_a and with lumping_C: b = a² + s²/2 to ±0.03,
+    a = 0 ± 0.6, s = 0 ± 0.8, flat priors in [−1.5, 1.5]² × [−1, 4]."""
+
+    free: tuple = (FreeParameter("a", -1.5, 1.5, "linear"), FreeParameter("b", -1.0, 4.0, "linear"),
+                   FreeParameter("s", -1.5, 1.5, "linear"))
+
+    def residuals(self, t):
+        return jnp.stack([(t[1] - t[0] ** 2 - 0.5 * t[2] ** 2) / 0.03, t[0] / 0.6, t[2] / 0.8])
+
+
+def _sheet_moments():
+    """Means and SDs of (a, b, s) under `_CurvedSheet`'s posterior: a and s truncated
+    normals (b's band lies inside its bounds), b = a² + s²/2 + N(0, 0.03²)."""
+    moments = []
+    for sd in (0.6, 0.8):
+        x = -1.5 + 3.0 * (np.arange(20000) + 0.5) / 20000
+        w = np.exp(-0.5 * (x / sd) ** 2)
+        moments.append([np.sum(w * x**n) / np.sum(w) for n in (2, 4)])
+    (a2, a4), (s2, s4) = moments
+    return np.array([0.0, a2 + 0.5 * s2, 0.0]), np.sqrt([a2, a4 - a2**2 + 0.25 * (s4 - s2**2) + 0.03**2, s2])
+
+
+def test_sample_straightens_a_ridge_bent_two_ways():
+    """Two shears (`post.trace_ridge`, then `post.trace_second_ridge` given the leader)
+    make the sheet b = a² + s²/2 flat: means and SDs against quadrature, ESS, leapfrog
+    steps a draw."""
+    problem = _CurvedSheet()
+    t_best = jnp.zeros(3)
+    J = jax.jacfwd(problem.residuals)(t_best)
+    white = post.whitening(problem, t_best, J)
+    assert [r.leader for r in white.ridges] == [2, 0]
+    draws = post.sample(problem, t_best, J, post.SamplerSettings(chains=4, warmup=200, samples=250))
+    az = post.import_arviz()
+    ess = np.asarray(az.ess(az.from_dict(posterior={"t": draws.t}))["t"].values)
+    exact, sd = _sheet_moments()
+    mean = draws.t.reshape(-1, 3).mean(axis=0)
+    print(f"sheet bent two ways: means {mean.round(4)} (quadrature {exact.round(4)}), SDs {draws.t.reshape(-1, 3).std(axis=0).round(4)} "
+          f"({sd.round(4)}), bulk ESS {ess.round()}, {draws.leapfrog_steps.mean():.1f} leapfrog steps a draw, "
+          f"{int(draws.diverging.sum())} divergent")
+    assert np.all(np.abs(mean - exact) < 4 * sd / np.sqrt(ess))
+    np.testing.assert_allclose(draws.t.reshape(-1, 3).std(axis=0), sd, rtol=0.15)
+    assert np.all(ess > 250) and draws.leapfrog_steps.mean() < 7 and draws.diverging.sum() == 0
+
+
 def test_ridge_coordinates_invert_and_differentiate():
     """The shear `u_from_w`: with the knots of y = x² and its exact slopes, the cubic
     Hermite interpolant is exact (it reproduces cubics) and straight beyond the knots;
-    `w_from_u` inverts it; the log density in the sampler's z (`trace_ridge`'s own
-    shear on a banana) has the gradient of central differences."""
+    `w_from_u` inverts it; with the two shears `whitening` builds for a sheet bent two
+    ways, z ↦ u inverts and the log density in z has the gradient of central
+    differences."""
     problem = _CurvedRidge()
     free = problem.free
     x = np.linspace(-1.2, 1.0, 7)
     y = np.stack([np.zeros(7), x**2], axis=-1)
     ridge = post.Ridge(0, x, y, np.zeros(7), y, np.stack([np.zeros(7), 2 * x], axis=-1))
     w = np.stack([np.linspace(-1.6, 1.6, 41), np.random.default_rng(0).normal(size=41) * 0.05], axis=-1)
-    u = np.asarray(jax.vmap(lambda v: post.u_from_w(free, ridge.arrays(), v))(jnp.asarray(w)))
+    u = np.asarray(jax.vmap(lambda v: post.u_from_w(free, (ridge.arrays(),), v))(jnp.asarray(w)))
     t_a = np.asarray(post.t_from_u(free, jnp.asarray(u)))[:, 0]
     expected = np.where(t_a < -1.2, 1.44 - 2.4 * (t_a + 1.2), np.where(t_a > 1.0, 1.0 + 2.0 * (t_a - 1.0), t_a**2))
     np.testing.assert_allclose(u[:, 0], w[:, 0], atol=0)
     np.testing.assert_allclose(u[:, 1] - w[:, 1], expected, atol=1e-12)
-    np.testing.assert_allclose(post.w_from_u(free, ridge.arrays(), jnp.asarray(u)), w, atol=1e-12)
+    np.testing.assert_allclose(post.w_from_u(free, (ridge.arrays(),), jnp.asarray(u)), w, atol=1e-12)
 
-    t_best = jnp.zeros(2)
-    white = post.whitening(problem, t_best, jax.jacfwd(problem.residuals)(t_best))
-    assert white.ridge.leader == 0 and post.straightens(white.ridge)
-    log_density = post.log_density_fn(problem)
-    f = jax.jit(lambda z: log_density(post.u_from_z(free, white.args(), z)))
-    z, h = jnp.asarray([0.3, -0.4]), 1e-5
-    fd = [(f(z + h * e) - f(z - h * e)) / (2 * h) for e in jnp.eye(2)]
+    sheet = _CurvedSheet()
+    t_best = jnp.zeros(3)
+    white = post.whitening(sheet, t_best, jax.jacfwd(sheet.residuals)(t_best))
+    assert len(white.ridges) == 2 and all(post.straightens(r) for r in white.ridges)
+    z = np.random.default_rng(1).normal(size=(20, 3))
+    u = post.u_from_z(sheet.free, white.args(), jnp.asarray(z))
+    np.testing.assert_allclose(np.linalg.solve(white.L, (post.w_from_u(sheet.free, white.args()[2], u) - white.c).T).T, z, atol=1e-10)
+    log_density = post.log_density_fn(sheet)
+    f = jax.jit(lambda z: log_density(post.u_from_z(sheet.free, white.args(), z)))
+    z, h = jnp.asarray([0.3, -0.4, 0.7]), 1e-5
+    fd = [(f(z + h * e) - f(z - h * e)) / (2 * h) for e in jnp.eye(3)]
     np.testing.assert_allclose(jax.grad(f)(z), fd, rtol=1e-6)
 
 

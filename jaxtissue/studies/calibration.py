@@ -236,10 +236,11 @@ def lm_solver(problem: Problem, batch: int):
     return jax.jit(jax.vmap(solve, in_axes=(0, None)))
 
 
-def pinned(i: int, t_i: float, max_steps: int):
-    """`lm_solve`'s args: free parameter i pinned at t_i (i = −1: none), at most `max_steps`
-    steps (typed alike for every call, so that the compiled solve is reused)."""
-    return (np.asarray(i, np.int64), np.asarray(t_i, np.float64), np.asarray(max_steps, np.int64))
+def pinned(i: int, t_i: float, max_steps: int, also: tuple[int, float] = (-1, 0.0)):
+    """`lm_solve`'s args: free parameter i pinned at t_i (i = −1: none) and `also` a
+    second (j, t_j), at most `max_steps` steps (typed alike for every call, so that the
+    compiled solve is reused)."""
+    return (np.asarray([i, also[0]], np.int64), np.asarray([t_i, also[1]], np.float64), np.asarray(max_steps, np.int64))
 
 
 def unpinned(max_steps: int):
@@ -260,19 +261,24 @@ class _LMResult(NamedTuple):
 
 def lm_solve(problem: Problem, max_steps: int, record=None):
     """An LM solve `solve(t0, (i, t_i, steps))` of at most `min(steps, max_steps)` steps,
-    with free parameter i pinned at t_i (i = −1: none pinned), returning an `_LMResult`.
+    with free parameters i[n] pinned at t_i[n] (i[n] = −1: none; `pinned`), returning an
+    `_LMResult`.
     `record(chi2)`: called with χ² of every point evaluated (the benchmark's clock)."""
     tol = problem.fit.rtol
     solver = LevenbergMarquardt(rtol=tol, atol=tol, ftol=tol, lower=problem.t_bounds()[0], upper=problem.t_bounds()[1],
                                 cap_steps=True, record=record)
 
-    def residual(t, args):
+    def pin(t, args):
         i, t_i, _ = args
-        return problem.residuals(jnp.where(jnp.arange(t.shape[0]) == i, t_i, t))
+        for n in range(2):
+            t = jnp.where(jnp.arange(t.shape[0]) == i[n], t_i[n], t)
+        return t
+
+    def residual(t, args):
+        return problem.residuals(pin(t, args))
 
     def solve(t0, args):
-        i, t_i, _ = args
-        t0 = jnp.where(jnp.arange(t0.shape[0]) == i, t_i, t0)
+        t0 = pin(t0, args)
         sol = optx.least_squares(residual, solver, t0, args, max_steps=max_steps, throw=False)
         last = sol.state.residual
         return _LMResult(sol.value, jnp.sum(last**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful,

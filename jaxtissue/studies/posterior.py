@@ -261,8 +261,9 @@ class Ridge(NamedTuple):
     """The posterior's longest ridge, traced as a profile likelihood traces it: the free
     parameter `leader` pinned at the knots `x` (its fit coordinate, increasing), the
     others re-optimised: `t` (knots, k) the profile optimum, `chi2` its χ². `y` (knots, k)
-    the optimum in u of every parameter but the leader (whose column is zero) and `slope`
-    dy/dx: the shear `u_from_w` that straightens the ridge; all zero where it does not."""
+    the offset in u of every parameter but the leader (whose column is zero) from the
+    optimum and `slope` dy/dx: the shear `u_from_w` that straightens the ridge; all zero
+    where it does not."""
 
     leader: int
     x: np.ndarray
@@ -309,59 +310,119 @@ def _shear(free, ridge_arrays, v):
     return jnp.vectorize(lambda t_i: _hermite(t_i, x, y, slope), signature="()->(k)")(t_leader)
 
 
-def u_from_w(free, ridge_arrays, w):
-    """u of the ridge coordinates w: the leader's u_i = w_i, every other u_j = w_j +
-    y_j(t_i), its profile optimum at the leader's t_i (`Ridge`). A shear (unit
-    Jacobian) that straightens a curved ridge along the leader's axis."""
-    return w + _shear(free, ridge_arrays, w)
+def u_from_w(free, ridges_arrays, w):
+    """u of the ridge coordinates w, `ridges_arrays` a sequence of `Ridge.arrays()`: the
+    shears applied innermost (last) first. Each moves every parameter j but its own
+    leader i by y_j(t_i), j's profile optimum at the leader's t_i (`Ridge`): unit
+    Jacobian, and a curved ridge along the leader's axis made straight."""
+    for arrays in reversed(tuple(ridges_arrays)):
+        w = w + _shear(free, arrays, w)
+    return w
 
 
-def w_from_u(free, ridge_arrays, u):
+def w_from_u(free, ridges_arrays, u):
     """`u_from_w` inverted."""
-    return u - _shear(free, ridge_arrays, u)
+    for arrays in ridges_arrays:
+        u = u - _shear(free, arrays, u)
+    return u
+
+
+def _profile(problem: Problem, t_best, i: int, per_side: int, also: int = -1):
+    """Free parameter i pinned at `per_side` points from the optimum to each of its
+    bounds (1 % of its range short), the others but `also` (held at its optimum)
+    re-optimised by the fit's solver from the previous point: knots x (increasing), the
+    optima t (knots, k) and their χ²."""
+    from .calibration import lm_solver, pinned
+
+    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    solve, steps = lm_solver(problem, 1), problem.fit.profile_max_steps
+    margin, held = 0.01 * (hi[i] - lo[i]), (also, float(t_best[also]) if also >= 0 else 0.0)
+    t, chi2, *_ = solve(jnp.asarray(t_best)[None], pinned(i, float(t_best[i]), steps, held))
+    points = [(float(t_best[i]), np.asarray(t_best, float), float(chi2[0]))]
+    for end in (lo[i] + margin, hi[i] - margin):
+        if abs(end - t_best[i]) <= margin:
+            continue
+        t = jnp.asarray(t_best)[None]
+        for n in range(1, per_side + 1):
+            x = float(t_best[i] + n / per_side * (end - t_best[i]))
+            t, chi2, *_ = solve(t, pinned(i, x, steps, held))
+            if not np.isfinite(float(chi2[0])):
+                break
+            points.append((x, np.asarray(t[0]), float(chi2[0])))
+    points.sort(key=lambda p: p[0])
+    return tuple(np.array([p[n] for p in points]) for n in range(3))
+
+
+def _u_on_ridge(free, t):
+    """u of profile optima t, those on a bound taken to the bound in u (t a fraction
+    ln 2 of δ inside): where the soft box keeps a posterior piled against that bound."""
+    return u_from_t(free, jnp.asarray(t), margin=SOFT_EDGE * np.log(2.0))
+
+
+def _leading(cov, scale, exclude=()):
+    """The (at most two) parameters that lead the principal axis of `cov` scaled by the
+    flat prior's SDs `scale`, leaving out `exclude`."""
+    keep = np.setdiff1d(np.arange(len(scale)), exclude)
+    sub = cov[np.ix_(keep, keep)] / np.outer(scale[keep], scale[keep])
+    axis = np.abs(np.linalg.eigh(sub)[1][:, -1])
+    order = np.argsort(-axis)
+    return [int(keep[j]) for j in order[:2] if axis[j] >= 0.3] or [int(keep[order[0]])]
 
 
 def trace_ridge(problem: Problem, t_best, cov, per_side: int = 8) -> Ridge:
     """The ridge along the principal axis of the Laplace covariance `cov` (scaled by the
     flat prior's): each of the (at most two) parameters that lead that axis is pinned at
     `per_side` points from the optimum to each of its bounds and the others re-optimised
-    by the fit's solver, each from the previous point. The leader is the first whose
-    profile keeps the others 2 % of their ranges off their bounds, and its profile is
-    the shear; where none does, the ridge runs into a corner of the box, which no smooth
-    shear follows, and the first candidate's profile is kept without one."""
-    from .calibration import lm_solver, pinned
-
+    (`_profile`). The leader is the first whose profile keeps the others 2 % of their
+    ranges off their bounds, and its profile is the shear; where none does, the ridge runs
+    into a corner of the box, which no smooth shear follows, and the first candidate's
+    profile is kept without one."""
     lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
-    scale = (hi - lo) / np.sqrt(12.0)
-    axis = np.abs(np.linalg.eigh(cov / np.outer(scale, scale))[1][:, -1])
-    order = np.argsort(-axis)
-    candidates = [int(i) for i in order[:2] if axis[i] >= 0.3] or [int(order[0])]
-    solve, steps = lm_solver(problem, 1), problem.fit.profile_max_steps
     traced = []
-    for i in candidates:
-        margin = 0.01 * (hi[i] - lo[i])
-        t, chi2, *_ = solve(jnp.asarray(t_best)[None], pinned(i, float(t_best[i]), steps))
-        points = [(float(t_best[i]), np.asarray(t_best, float), float(chi2[0]))]
-        for end in (lo[i] + margin, hi[i] - margin):
-            if abs(end - t_best[i]) <= margin:
-                continue
-            t = jnp.asarray(t_best)[None]
-            for n in range(1, per_side + 1):
-                x = float(t_best[i] + n / per_side * (end - t_best[i]))
-                t, chi2, *_ = solve(t, pinned(i, x, steps))
-                if not np.isfinite(float(chi2[0])):
-                    break
-                points.append((x, np.asarray(t[0]), float(chi2[0])))
-        points.sort(key=lambda p: p[0])
-        x, t, chi2 = (np.array([p[n] for p in points]) for n in range(3))
+    for i in _leading(cov, (hi - lo) / np.sqrt(12.0)):
+        x, t, chi2 = _profile(problem, t_best, i, per_side)
         flat = np.zeros((len(x), len(t_best)))
         others, room = np.arange(len(t_best)) != i, 0.02 * (hi - lo)
         if len(x) > 1 and np.all((t[:, others] > lo[others] + room[others]) & (t[:, others] < hi[others] - room[others])):
-            y = np.array(u_from_t(problem.free, jnp.asarray(t)))
+            y = np.array(_u_on_ridge(problem.free, t) - _u_on_ridge(problem.free, t_best))
             y[:, i] = 0.0
             return Ridge(i, x, t, chi2, y, _knot_slopes(x, y))
         traced.append(Ridge(i, x, t, chi2, flat, flat))
     return traced[0]
+
+
+SECOND_RIDGE_WIDTH = 0.3  # a second shear where a parameter's SD given the leader is ≥ 0.3 of its flat prior's
+
+
+def trace_second_ridge(problem: Problem, t_centre, cov, ridge: Ridge, per_side: int = 8):
+    """A second shear, applied before `ridge`'s (`u_from_w`), for a parameter j that
+    stays wide given the leader (conditional SD in the Laplace covariance `cov` at least
+    `SECOND_RIDGE_WIDTH` of its flat prior's, the largest on the principal axis given the
+    leader) and bends the others as it moves (the Engelmayr problem's lumping_C shifts the
+    k_c,max–k_a ridge by several of its widths over its range): j's profile (`_profile`)
+    from `t_centre`, a point of `ridge`, with the leader held there, taken through the
+    first shear: x = t_from_u of j's coordinate there, y the others' offsets along it,
+    the leader's column zero. None where no parameter is that wide or `ridge` carries no
+    shear."""
+    if not straightens(ridge):
+        return None
+    i = ridge.leader
+    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    scale = (hi - lo) / np.sqrt(12.0)
+    given = cov - np.outer(cov[:, i], cov[i]) / cov[i, i]
+    j = _leading(given, scale, exclude=(i,))[0]
+    if np.sqrt(given[j, j]) < SECOND_RIDGE_WIDTH * scale[j]:
+        return None
+    _, t, chi2 = _profile(problem, t_centre, j, per_side, also=i)
+    if len(chi2) < 2:
+        return None
+    v = np.array(w_from_u(problem.free, (ridge.arrays(),), _u_on_ridge(problem.free, t)))
+    x = np.asarray(t_from_u(problem.free, jnp.asarray(v)))[:, j]
+    y = v - v[np.argmin(chi2)]
+    y[:, [i, j]] = 0.0
+    order = np.argsort(x)
+    x, t, chi2, y = x[order], t[order], chi2[order], y[order]
+    return Ridge(j, x, t, chi2, y, _knot_slopes(x, y))
 
 
 def straightens(ridge: Ridge) -> bool:
@@ -370,63 +431,89 @@ def straightens(ridge: Ridge) -> bool:
 
 
 class Whitening(NamedTuple):
-    """The sampler's coordinates z: u = `u_from_w`(ridge, c + L z), and the chains'
-    starts `z0` along the ridge."""
+    """The sampler's coordinates z: u = `u_from_w`(ridges, c + L z), and the chains'
+    starts `z0` along the ridges. `ridges`: the leading ridge (`trace_ridge`), then the
+    second where there is one (`trace_second_ridge`)."""
 
-    ridge: Ridge
+    ridges: tuple
     c: np.ndarray
     L: np.ndarray
     z0: np.ndarray
 
     def args(self):
-        """(c, L, ridge arrays) as JAX arrays: the `args` of `whitened_programs`, `u_from_z`."""
-        return jnp.asarray(self.c), jnp.asarray(self.L), self.ridge.arrays()
+        """(c, L, ridges' arrays) as JAX arrays: the `args` of `whitened_programs`, `u_from_z`."""
+        return jnp.asarray(self.c), jnp.asarray(self.L), tuple(r.arrays() for r in self.ridges)
 
 
 def u_from_z(free, args, z):
     """u of the sampler's coordinates z (shape (..., k)), args = `Whitening.args()`."""
-    c, L, ridge_arrays = args
-    return u_from_w(free, ridge_arrays, c + z @ L.T)
+    c, L, ridges_arrays = args
+    return u_from_w(free, ridges_arrays, c + z @ L.T)
+
+
+def _profile_posterior(problem: Problem, ridge: Ridge) -> np.ndarray:
+    """Weights of `ridge`'s knots under its leader's profile posterior, exp(−χ²/2) ×
+    prior × knot spacing, normalised."""
+    f = problem.free[ridge.leader]
+    log_p = -0.5 * ridge.chi2 + np.asarray(f.prior_density.log_density(f.from_t(jnp.asarray(ridge.x))))
+    log_p = log_p + (ridge.x if f.transform == "log" else 0.0)
+    p = np.exp(log_p - log_p.max()) * (np.gradient(ridge.x) if len(ridge.x) > 1 else 1.0)
+    return p / p.sum()
+
+
+def _quantiles(p, x, n: int) -> np.ndarray:
+    """n evenly spaced quantiles of the weights p at the knots x."""
+    return np.interp((np.arange(n) + 0.5) / n, np.cumsum(p) - 0.5 * p, x)
 
 
 def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float = 0.5, seed: int = 0) -> Whitening:
     """The sampler's coordinates (docs/numerics.md, "Posterior sampling"): the ridge
-    (`trace_ridge`), straightened by `u_from_w` where it can be, then w = c + L z with c
-    the ridge's centre and L Lᵀ the Laplace covariance of t (`laplace_inverse_mass`)
-    with the leader's variance raised to that of its profile posterior along the ridge
-    (exp(−χ²/2) × prior at the knots): the Laplace Gaussian knows a ridge's direction at
-    the optimum, not its length. With the shear, the others' offsets from the ridge get
-    their Laplace covariance given the leader; without it, the added variance runs along
-    the Laplace covariance's own ridge direction. Every coordinate of z is O(1) whatever
-    the parameters' units (the warmup shrinks its estimates towards 10⁻³·I, which would
-    swamp a coordinate 10⁻⁵ wide). The chains start on the ridge with the leader at
-    evenly spaced quantiles of its profile posterior, plus N(0, jitter²·I) in z:
-    over-dispersed along the longest direction, where R-hat must see chains disagree."""
+    (`trace_ridge`) and a second one through its centre (`trace_second_ridge`), straightened by `u_from_w`
+    where they can be, then w = c + L z with c the ridges' centre and L Lᵀ the Laplace
+    covariance of t (`laplace_inverse_mass`) given each sheared leader, whose own
+    variance is that of its profile posterior (exp(−χ²/2) × prior at the knots): the
+    Laplace Gaussian knows a ridge's direction at the optimum, not its length. Without a
+    shear the added variance runs along the Laplace covariance's own ridge direction.
+    Every coordinate of z is O(1) whatever the parameters' units (the warmup shrinks its
+    estimates towards 10⁻³·I, which would swamp a coordinate 10⁻⁵ wide). The chains
+    start on the ridges with each leader at evenly spaced quantiles of its profile
+    posterior (the second's in reverse order), plus N(0, jitter²·I) in z: over-dispersed
+    along the longest directions, where R-hat must see chains disagree."""
     cov = laplace_inverse_mass(problem, t_best, jacobian)
     ridge = trace_ridge(problem, t_best, cov)
-    i, k = ridge.leader, len(t_best)
-    f = problem.free[i]
-    log_p = -0.5 * ridge.chi2 + np.asarray(f.prior_density.log_density(f.from_t(jnp.asarray(ridge.x))))
-    log_p = log_p + (ridge.x if f.transform == "log" else 0.0)
-    p = np.exp(log_p - log_p.max()) * (np.gradient(ridge.x) if len(ridge.x) > 1 else 1.0)
-    p /= p.sum()
-    mean = float(p @ ridge.x)
-    added = max(float(p @ (ridge.x - mean) ** 2) - cov[i, i], 0.0)
-    direction = cov[:, i] / cov[i, i]
+    k = len(t_best)
+    p = _profile_posterior(problem, ridge)
+    centre = np.array([np.interp(p @ ridge.x, ridge.x, ridge.t[:, j]) for j in range(k)])
+    second = trace_second_ridge(problem, centre, cov, ridge)
+    ridges = (ridge,) if second is None else (ridge, second)
+    arrays = tuple(r.arrays() for r in ridges)
+    p = [_profile_posterior(problem, r) for r in ridges]
+    mean = [float(q @ r.x) for q, r in zip(p, ridges)]
+    variance = [float(q @ (r.x - m) ** 2) for q, r, m in zip(p, ridges, mean)]
+    i = ridge.leader
     if straightens(ridge):
-        others = np.arange(k) != i
-        cov = cov - np.outer(direction, cov[i]) + np.diag(np.where(others, 0.0, cov[i, i]))
-        direction = np.eye(k)[i]
-    cov = cov + added * np.outer(direction, direction)
-    # the centre and the starts: points of the profile, leader at its mean and quantiles
-    quantiles = np.interp((np.arange(chains) + 0.5) / chains, np.cumsum(p) - 0.5 * p, ridge.x)
-    along = np.stack([np.interp(np.append(mean, quantiles), ridge.x, ridge.t[:, j]) for j in range(k)], axis=-1)
-    u = jnp.asarray(u_from_t(problem.free, jnp.asarray(along)))
-    w = np.asarray(w_from_u(problem.free, ridge.arrays(), u))
+        lead = np.array([r.leader for r in ridges])
+        rest = np.setdiff1d(np.arange(k), lead)
+        given = np.zeros((k, k))
+        given[np.ix_(rest, rest)] = cov[np.ix_(rest, rest)] - cov[np.ix_(rest, lead)] @ np.linalg.solve(
+            cov[np.ix_(lead, lead)], cov[np.ix_(lead, rest)])
+        given[lead, lead] = np.maximum(variance, np.diag(cov)[lead])
+        cov = given
+    else:
+        direction = cov[:, i] / cov[i, i]
+        cov = cov + max(variance[0] - cov[i, i], 0.0) * np.outer(direction, direction)
+    # the centre and the starts: points of the leading profile, its leader at its mean
+    # and quantiles; the second leader (in w) likewise, in reverse order
+    along = np.stack([np.interp(np.append(mean[0], _quantiles(p[0], ridge.x, chains)), ridge.x, ridge.t[:, j])
+                      for j in range(k)], axis=-1)
+    w = np.array(w_from_u(problem.free, arrays, u_from_t(problem.free, jnp.asarray(along))))
+    if second is not None:
+        j, x = second.leader, np.append(mean[1], _quantiles(p[1], second.x, chains)[::-1])
+        w[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(np.outer(x, np.ones(k)))))[:, j]
     c = w[0]
     L = np.linalg.cholesky(cov)
     z0 = np.linalg.solve(L, (w[1:] - c).T).T + jitter * np.random.default_rng(seed).normal(size=(chains, k))
-    return Whitening(ridge, c, L, z0)
+    return Whitening(ridges, c, L, z0)
 
 
 @functools.lru_cache(maxsize=4)
