@@ -416,7 +416,9 @@ def trace_second_ridge(problem: Problem, t_centre, cov, ridge: Ridge, per_side: 
     _, t, chi2 = _profile(problem, t_centre, j, per_side, also=i)
     if len(chi2) < 2:
         return None
-    v = np.array(w_from_u(problem.free, (ridge.arrays(),), _u_on_ridge(problem.free, t)))
+    u = np.array(_u_on_ridge(problem.free, t))
+    u[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(t)))[:, j]  # j's own knots unclipped: distinct, in place
+    v = np.array(w_from_u(problem.free, (ridge.arrays(),), jnp.asarray(u)))
     x = np.asarray(t_from_u(problem.free, jnp.asarray(v)))[:, j]
     y = v - v[np.argmin(chi2)]
     y[:, [i, j]] = 0.0
