@@ -8,7 +8,7 @@ condition number) is what NUTS pays for in step size and trajectory length.
 * u = c + L z, L Lᵀ the Laplace covariance of t, (JᵀJ + Σ₀⁻¹)⁻¹ (`posterior.laplace_inverse_mass`);
 * the ridge coordinates `calibrate --posterior` samples in (`posterior.whitening`).
 
-It also prints the ridge's profile (the leader's knots and χ²) and, at ten draws spread
+It also prints the ridges' profiles (the leaders' knots and χ²) and, at ten draws spread
 over k_c,max, the posterior's narrowest local standard deviation in u (the Hessian of
 ln p by central differences of its gradient) and its direction.
 
@@ -50,8 +50,10 @@ def main():
     of_t = post.laplace_inverse_mass(problem, t_best, J)
     white = post.whitening(problem, t_best, J)
     for n, ridge in enumerate(white.ridges):
-        print(f"{('first', 'second')[n]} ridge: leader {names[ridge.leader]}, sheared {post.straightens(ridge)}; "
-              f"knots (ln) {np.round(ridge.x, 2)}, profile chi2 {np.round(ridge.chi2, 2)}")
+        print(f"{('first', 'second')[n]} ridge: leader {names[ridge.leader]}, sheared {post.straightens(ridge)}")
+        for at, x, chi2 in zip(ridge.at, ridge.x, ridge.chi2):
+            where = f" with {names[ridge.held]} held at {at:.2f}" if ridge.held != ridge.leader else ""
+            print(f"  knots (ln){where}: {np.round(x[np.isfinite(chi2)], 2)}, profile chi2 {np.round(chi2[np.isfinite(chi2)], 2)}")
     c_opt = np.asarray(post.u_from_t(problem.free, jnp.asarray(t_best)))
     for name, c, L, w in (("Laplace covariance in u", c_opt, np.linalg.cholesky(in_u), u),
                           ("Laplace covariance of t", c_opt, np.linalg.cholesky(of_t), u),

@@ -304,45 +304,47 @@ def test_sample_straightens_a_curved_ridge():
 
 
 @dataclasses.dataclass(frozen=True)
-class _CurvedSheet(_StandIn):
-    """A stand-in calibration problem whose ridge bends along two parameters, as the
-    Engelmayr k_c,max–k_a ridge bends with k_a and with lumping_C: b = a² + s²/2 to ±0.03,
-    a = 0 ± 0.6, s = 0 ± 0.8, flat priors in [−1.5, 1.5]² × [−1, 4]."""
+class _TwistedSheet(_StandIn):
+    """A stand-in calibration problem whose ridge bends along two parameters, by an
+    amount along one that changes with the other, as the Engelmayr k_c,max–k_a ridge
+    bends with k_a and with lumping_C, most where k_a meets its bound: b = a² + a·s + s²/2
+    to ±0.03, a = 0 ± 0.6, s = 0 ± 0.8, flat priors in [−1.5, 1.5]² × [−1, 6]."""
 
-    free: tuple = (FreeParameter("a", -1.5, 1.5, "linear"), FreeParameter("b", -1.0, 4.0, "linear"),
+    free: tuple = (FreeParameter("a", -1.5, 1.5, "linear"), FreeParameter("b", -1.0, 6.0, "linear"),
                    FreeParameter("s", -1.5, 1.5, "linear"))
 
     def residuals(self, t):
-        return jnp.stack([(t[1] - t[0] ** 2 - 0.5 * t[2] ** 2) / 0.03, t[0] / 0.6, t[2] / 0.8])
+        return jnp.stack([(t[1] - t[0] ** 2 - t[0] * t[2] - 0.5 * t[2] ** 2) / 0.03, t[0] / 0.6, t[2] / 0.8])
 
 
 def _sheet_moments():
-    """Means and SDs of (a, b, s) under `_CurvedSheet`'s posterior: a and s truncated
-    normals (b's band lies inside its bounds), b = a² + s²/2 + N(0, 0.03²)."""
+    """Means and SDs of (a, b, s) under `_TwistedSheet`'s posterior: a and s independent
+    truncated normals (b's band lies inside its bounds), b = a² + a·s + s²/2 + N(0, 0.03²)."""
     moments = []
     for sd in (0.6, 0.8):
         x = -1.5 + 3.0 * (np.arange(20000) + 0.5) / 20000
         w = np.exp(-0.5 * (x / sd) ** 2)
         moments.append([np.sum(w * x**n) / np.sum(w) for n in (2, 4)])
     (a2, a4), (s2, s4) = moments
-    return np.array([0.0, a2 + 0.5 * s2, 0.0]), np.sqrt([a2, a4 - a2**2 + 0.25 * (s4 - s2**2) + 0.03**2, s2])
+    return np.array([0.0, a2 + 0.5 * s2, 0.0]), np.sqrt([a2, a4 - a2**2 + a2 * s2 + 0.25 * (s4 - s2**2) + 0.03**2, s2])
 
 
-def test_sample_straightens_a_ridge_bent_two_ways():
-    """Two shears (`post.trace_ridge`, then `post.trace_second_ridge` given the leader)
-    make the sheet b = a² + s²/2 flat: means and SDs against quadrature, ESS, leapfrog
-    steps a draw."""
-    problem = _CurvedSheet()
+def test_sample_straightens_a_twisted_sheet():
+    """Two shears (`post.trace_ridge`, then `post.trace_second_ridge` traced at three
+    positions of the leader) make the sheet b = a² + a·s + s²/2 flat: means and SDs
+    against quadrature, ESS, leapfrog steps a draw. One position alone leaves the twist
+    a·s: b off by up to ±1.5, 50 of the ridge's widths."""
+    problem = _TwistedSheet()
     t_best = jnp.zeros(3)
     J = jax.jacfwd(problem.residuals)(t_best)
     white = post.whitening(problem, t_best, J)
-    assert [r.leader for r in white.ridges] == [2, 0]
+    assert [(r.leader, r.held, len(r.at)) for r in white.ridges] == [(2, 2, 1), (0, 2, 3)]
     draws = post.sample(problem, t_best, J, post.SamplerSettings(chains=4, warmup=200, samples=250))
     az = post.import_arviz()
     ess = np.asarray(az.ess(az.from_dict(posterior={"t": draws.t}))["t"].values)
     exact, sd = _sheet_moments()
     mean = draws.t.reshape(-1, 3).mean(axis=0)
-    print(f"sheet bent two ways: means {mean.round(4)} (quadrature {exact.round(4)}), SDs {draws.t.reshape(-1, 3).std(axis=0).round(4)} "
+    print(f"twisted sheet: means {mean.round(4)} (quadrature {exact.round(4)}), SDs {draws.t.reshape(-1, 3).std(axis=0).round(4)} "
           f"({sd.round(4)}), bulk ESS {ess.round()}, {draws.leapfrog_steps.mean():.1f} leapfrog steps a draw, "
           f"{int(draws.diverging.sum())} divergent")
     assert np.all(np.abs(mean - exact) < 4 * sd / np.sqrt(ess))
@@ -353,14 +355,13 @@ def test_sample_straightens_a_ridge_bent_two_ways():
 def test_ridge_coordinates_invert_and_differentiate():
     """The shear `u_from_w`: with the knots of y = x² and its exact slopes, the cubic
     Hermite interpolant is exact (it reproduces cubics) and straight beyond the knots;
-    `w_from_u` inverts it; with the two shears `whitening` builds for a sheet bent two
-    ways, z ↦ u inverts and the log density in z has the gradient of central
+    `w_from_u` inverts it; with the two shears `whitening` builds for a twisted sheet, z ↦ u inverts and the log density in z has the gradient of central
     differences."""
     problem = _CurvedRidge()
     free = problem.free
     x = np.linspace(-1.2, 1.0, 7)
     y = np.stack([np.zeros(7), x**2], axis=-1)
-    ridge = post.Ridge(0, x, y, np.zeros(7), y, np.stack([np.zeros(7), 2 * x], axis=-1))
+    ridge = post.Ridge(0, 0, np.zeros(1), x[None], y[None], np.zeros((1, 7)), y[None], np.stack([np.zeros(7), 2 * x], axis=-1)[None])
     w = np.stack([np.linspace(-1.6, 1.6, 41), np.random.default_rng(0).normal(size=41) * 0.05], axis=-1)
     u = np.asarray(jax.vmap(lambda v: post.u_from_w(free, (ridge.arrays(),), v))(jnp.asarray(w)))
     t_a = np.asarray(post.t_from_u(free, jnp.asarray(u)))[:, 0]
@@ -369,7 +370,32 @@ def test_ridge_coordinates_invert_and_differentiate():
     np.testing.assert_allclose(u[:, 1] - w[:, 1], expected, atol=1e-12)
     np.testing.assert_allclose(post.w_from_u(free, (ridge.arrays(),), jnp.asarray(u)), w, atol=1e-12)
 
-    sheet = _CurvedSheet()
+    # a ridge along a traced at two positions of a held s, one profile of 3 knots padded to
+    # the other's 7: at each position the shear is that profile's own, beyond its knots too;
+    # halfway, their mean; and w_from_u inverts it
+    free3 = _TwistedSheet().free
+    short = np.linspace(-0.5, 0.5, 3)
+    y7, y3 = (np.stack([np.zeros(len(v)), f, np.zeros(len(v))], axis=-1) for v, f in ((x, x**2), (short, -short)))
+    profiles = [(x, np.zeros((7, 3)), np.zeros(7), y7), (short, np.zeros((3, 3)), np.zeros(3), y3)]
+    ridge = post.Ridge.from_profiles(0, 2, [0.0, 1.0], profiles)
+    assert ridge.x.shape == (2, 7) and np.all(np.isinf(ridge.chi2[1, 3:]))
+    a = np.linspace(-1.4, 1.4, 29)
+    shift = {}
+    for s_ in (0.0, 0.5, 1.0):  # s's t
+        w = np.asarray(post.u_from_t(free3, jnp.asarray(np.stack([a, 0.1 * a, np.full_like(a, s_)], axis=-1))))
+        u = np.asarray(post.u_from_w(free3, (ridge.arrays(),), jnp.asarray(w)))
+        np.testing.assert_allclose(post.w_from_u(free3, (ridge.arrays(),), jnp.asarray(u)), w, atol=1e-12)
+        shift[s_] = u - w
+        if s_ != 0.5:
+            alone = post.Ridge.from_profiles(0, 2, [0.0], [profiles[int(s_)]]).arrays()
+            np.testing.assert_allclose(shift[s_], np.asarray(post.u_from_w(free3, (alone,), jnp.asarray(w))) - w, atol=1e-12)
+    np.testing.assert_allclose(shift[1.0][:, 1], -a, atol=1e-12)
+    np.testing.assert_allclose(shift[0.5], 0.5 * (shift[0.0] + shift[1.0]), atol=1e-12)
+    lone = post.Ridge.from_profiles(0, 0, [0.0], [(np.zeros(1), np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)))])
+    assert lone.x.shape == (1, 2) and not post.straightens(lone)
+    np.testing.assert_allclose(post.u_from_w(free3, (lone.arrays(),), jnp.asarray(w)), w, atol=0)
+
+    sheet = _TwistedSheet()
     t_best = jnp.zeros(3)
     white = post.whitening(sheet, t_best, jax.jacfwd(sheet.residuals)(t_best))
     assert len(white.ridges) == 2 and all(post.straightens(r) for r in white.ridges)

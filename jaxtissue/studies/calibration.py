@@ -355,14 +355,31 @@ def _crossing(xs, ys, level):
     return None
 
 
+def pinned_walk(problem: Problem, t_start, i: int, xs, also: tuple[int, float] = (-1, 0.0), stop=None, progress=None):
+    """Free parameter i pinned at each of `xs` in turn (and `also`, (j, t_j), held), the
+    others re-optimised by the fit's solver from the previous point, starting at
+    `t_start`: the optima t (points, k) and their χ² (inf where the model failed).
+    Ends after a point whose χ² fails or meets `stop(χ²)`. The profiles' and the
+    posterior's ridges' walk."""
+    solve = lm_solver(problem, 1)  # the fit's own when its batch is 1
+    t, ts, chi2s = jnp.asarray(t_start)[None], [], []
+    for x in xs:
+        t, c, *_ = solve(t, pinned(i, float(x), problem.fit.profile_max_steps, also))
+        ts.append(np.asarray(t[0]))
+        chi2s.append(float(c[0]) if np.isfinite(float(c[0])) else np.inf)
+        if progress is not None:
+            progress(1)
+        if not np.isfinite(chi2s[-1]) or (stop is not None and stop(chi2s[-1])):
+            break
+    return np.reshape(ts, (len(ts), np.size(t_start))), np.asarray(chi2s)
+
+
 def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Profile]:
     """Profile likelihood of every free parameter: on each side of the optimum,
     `profile_points` values spaced to span 4 standard errors (or up to the bound), the
-    others re-optimised from the previous point."""
+    others re-optimised from the previous point (`pinned_walk`)."""
     s = problem.fit
     lo, hi = (np.asarray(b) for b in problem.t_bounds())
-    solve = lm_solver(problem, 1)  # the fit's own when its batch is 1
-    t_best = jnp.asarray(best.t)[None]
     level = best.chi2 + CHI2_95
     out = []
     for i, f in enumerate(problem.free):
@@ -371,17 +388,9 @@ def profiles(problem: Problem, best: FitResult, se_t, progress=None) -> list[Pro
             span = abs(bound - best.t[i])
             if np.isfinite(se_t[i]) and se_t[i] > 0:
                 span = min(span, 4 * se_t[i])
-            xs, ys, t = [best.t[i]], [best.chi2], t_best
-            for k in range(1, s.profile_points + 1):
-                x = best.t[i] + direction * span * k / s.profile_points
-                t, c, *_ = solve(t, pinned(i, x, s.profile_max_steps))
-                xs.append(x)
-                ys.append(float(c[0]) if np.isfinite(float(c[0])) else np.inf)
-                if progress is not None:
-                    progress(1)
-                if ys[-1] > level + 2 * CHI2_95:
-                    break
-            sides[direction] = (np.array(xs), np.array(ys))
+            xs = best.t[i] + direction * span * np.arange(1, s.profile_points + 1) / s.profile_points
+            _, chi2 = pinned_walk(problem, best.t, i, xs, stop=lambda c: c > level + 2 * CHI2_95, progress=progress)
+            sides[direction] = (np.append(best.t[i], xs[: len(chi2)]), np.append(best.chi2, chi2))
         crossing = {d: _crossing(*sides[d], level) for d in sides}
         xs = np.concatenate([sides[-1][0][::-1], sides[1][0][1:]])
         ys = np.concatenate([sides[-1][1][::-1], sides[1][1][1:]])

@@ -18,11 +18,12 @@ coupled solve), wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 
 The sampler's coordinates follow the posterior's longest ridge as the profile
 likelihood traces it (`trace_ridge`: the leading parameter pinned, the others
-re-optimised), straightened by a shear (`u_from_w`) and whitened (`whitening`). Chains
-run batched under `vmap` (split over the devices when there are several, e.g. one per
-CPU core: `sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of
-the step size and a dense mass matrix). R-hat, effective sample sizes and quantiles
-are ArviZ's.
+re-optimised) and a second ridge across it (`trace_second_ridge`), straightened by
+shears (`u_from_w`) and whitened (`whitening`). Chains run batched under `vmap` (split
+over the devices when there are several, e.g. one per CPU core:
+`sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of the
+step size and a dense mass matrix). R-hat, effective sample sizes and quantiles are
+ArviZ's.
 """
 
 from __future__ import annotations
@@ -258,27 +259,47 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
 
 
 class Ridge(NamedTuple):
-    """The posterior's longest ridge, traced as a profile likelihood traces it: the free
+    """A ridge of the posterior, traced as a profile likelihood traces it: the free
     parameter `leader` pinned at the knots `x` (its fit coordinate, increasing), the
-    others re-optimised: `t` (knots, k) the profile optimum, `chi2` its χ². `y` (knots, k)
-    the offset in u of every parameter but the leader (whose column is zero) from the
-    optimum and `slope` dy/dx: the shear `u_from_w` that straightens the ridge; all zero
-    where it does not."""
+    others re-optimised, with the parameter `held` pinned at each of the m values `at`
+    (m = 1 and held = leader: nothing else held). Per position (first axis): `t`
+    (knots, k) the profile optima, `chi2` their χ² (inf at padding), `y` (knots, k) the
+    offsets in u (in w of the ridges applied before it, `u_from_w`) of every parameter
+    but leader and held (columns zero) and `slope` dy/dx: the shear that straightens the
+    ridge; all zero where it does not."""
 
     leader: int
-    x: np.ndarray
-    t: np.ndarray
-    chi2: np.ndarray
-    y: np.ndarray
-    slope: np.ndarray
+    held: int
+    at: np.ndarray  # (m,)
+    x: np.ndarray  # (m, knots)
+    t: np.ndarray  # (m, knots, k)
+    chi2: np.ndarray  # (m, knots)
+    y: np.ndarray  # (m, knots, k)
+    slope: np.ndarray  # (m, knots, k)
+
+    @classmethod
+    def from_profiles(cls, leader: int, held: int, at, profiles) -> "Ridge":
+        """The ridge of profiles (x, t, χ², y), one per position `at`: the slopes
+        `_knot_slopes`', every profile padded to the same number of knots (at least
+        two) along its straight extension, where its interpolant is unchanged."""
+        n = max(2, max(len(x) for x, *_ in profiles))
+        rows = []
+        for x, t, chi2, y in profiles:
+            slope = _knot_slopes(x, y) if len(x) > 1 else np.zeros_like(y)
+            extra = np.arange(1, n - len(x) + 1) * (x[-1] - x[-2] if len(x) > 1 else 1.0)
+            rows.append((np.append(x, x[-1] + extra), np.concatenate([t, np.repeat(t[-1:], len(extra), axis=0)]),
+                         np.append(chi2, np.full(len(extra), np.inf)), np.concatenate([y, y[-1] + extra[:, None] * slope[-1]]),
+                         np.concatenate([slope, np.repeat(slope[-1:], len(extra), axis=0)])))
+        return cls(leader, held, np.asarray(at, float), *(np.stack(column) for column in zip(*rows)))
 
     def arrays(self):
-        """(leader, x, y, slope) as JAX arrays: what `u_from_w` takes inside a program
-        (a lone knot, the optimum alone, padded to two: no shear)."""
-        if len(self.x) < 2:
-            flat = jnp.zeros((2, self.y.shape[1]))
-            return jnp.asarray(self.leader), jnp.asarray([self.x[0], self.x[0] + 1.0]), flat, flat
-        return jnp.asarray(self.leader), jnp.asarray(self.x), jnp.asarray(self.y), jnp.asarray(self.slope)
+        """(leader, held, at, x, y, slope) as JAX arrays: what `u_from_w` takes inside a program."""
+        return tuple(jnp.asarray(a) for a in (self.leader, self.held, self.at, self.x, self.y, self.slope))
+
+    def profile(self):
+        """(x, t, χ²) of the middle position's profile."""
+        m = len(self.at) // 2
+        return self.x[m], self.t[m], self.chi2[m]
 
 
 def _hermite(x, knots, y, slope):
@@ -293,28 +314,39 @@ def _hermite(x, knots, y, slope):
     return jnp.where(x < knots[0], below, jnp.where(x > knots[-1], above, inside))
 
 
-def _knot_slopes(x, y):
+def _knot_slopes(x, y, xp=np):
     """dy/dx at the knots: the spacing-weighted mean of the neighbouring secants."""
-    d = np.diff(y, axis=0) / np.diff(x)[:, None]
-    if len(x) == 2:
-        return np.concatenate([d, d])
-    left, right = np.diff(x)[:-1, None], np.diff(x)[1:, None]
-    return np.concatenate([d[:1], (right * d[:-1] + left * d[1:]) / (left + right), d[-1:]])
+    d = xp.diff(y, axis=0) / xp.diff(x)[:, None]
+    if x.shape[0] == 2:
+        return xp.concatenate([d, d])
+    left, right = xp.diff(x)[:-1, None], xp.diff(x)[1:, None]
+    return xp.concatenate([d[:1], (right * d[:-1] + left * d[1:]) / (left + right), d[-1:]])
 
 
 def _shear(free, ridge_arrays, v):
-    """y(t_i) of `Ridge` at the leader's t_i of v (u or w: the leader's coordinate is
-    the same in both), for v of shape (..., k)."""
-    leader, x, y, slope = ridge_arrays
-    t_leader = jnp.take(t_from_u(free, v), leader, axis=-1)
-    return jnp.vectorize(lambda t_i: _hermite(t_i, x, y, slope), signature="()->(k)")(t_leader)
+    """The offsets of `Ridge` at the leader's and the held parameter's t of v (u or w:
+    neither coordinate moves under the shear), for v of shape (..., k): each position's
+    Hermite interpolant along the leader, blended across the positions by the Hermite
+    interpolant of their weights in t_held (C¹, straight beyond the end positions)."""
+    leader, held, at, x, y, slope = ridge_arrays
+    t = t_from_u(free, v)
+    m = at.shape[0]
+    eye = jnp.eye(m)
+    blend_slope = _knot_slopes(at, eye, jnp) if m > 1 else None
+
+    def one(t_leader, t_held):
+        along = jax.vmap(_hermite, in_axes=(None, 0, 0, 0))(t_leader, x, y, slope)
+        weights = _hermite(t_held, at, eye, blend_slope) if m > 1 else jnp.ones(1)
+        return weights @ along
+
+    return jnp.vectorize(one, signature="(),()->(k)")(jnp.take(t, leader, axis=-1), jnp.take(t, held, axis=-1))
 
 
 def u_from_w(free, ridges_arrays, w):
     """u of the ridge coordinates w, `ridges_arrays` a sequence of `Ridge.arrays()`: the
-    shears applied innermost (last) first. Each moves every parameter j but its own
-    leader i by y_j(t_i), j's profile optimum at the leader's t_i (`Ridge`): unit
-    Jacobian, and a curved ridge along the leader's axis made straight."""
+    shears applied innermost (last) first. Each moves every parameter j but its leader
+    and held parameter by y_j, j's profile optimum at their t (`Ridge`): unit Jacobian,
+    and a ridge curved along the leader's axis made straight."""
     for arrays in reversed(tuple(ridges_arrays)):
         w = w + _shear(free, arrays, w)
     return w
@@ -327,30 +359,32 @@ def w_from_u(free, ridges_arrays, u):
     return u
 
 
-def _profile(problem: Problem, t_best, i: int, per_side: int, also: int = -1):
-    """Free parameter i pinned at `per_side` points from the optimum to each of its
-    bounds (1 % of its range short), the others but `also` (held at its optimum)
-    re-optimised by the fit's solver from the previous point: knots x (increasing), the
-    optima t (knots, k) and their χ²."""
-    from .calibration import lm_solver, pinned
+def _profile(problem: Problem, t_start, i: int, per_side: int, also: int = -1):
+    """Free parameter i pinned at `per_side` points from `t_start` to each of its bounds
+    (1 % of its range short), the others but `also` (held at t_start) re-optimised
+    (`calibration.pinned_walk`): knots x (increasing), the optima t (knots, k) and their
+    χ², points where the model failed left out."""
+    from .calibration import pinned_walk
 
     lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
-    solve, steps = lm_solver(problem, 1), problem.fit.profile_max_steps
-    margin, held = 0.01 * (hi[i] - lo[i]), (also, float(t_best[also]) if also >= 0 else 0.0)
-    t, chi2, *_ = solve(jnp.asarray(t_best)[None], pinned(i, float(t_best[i]), steps, held))
-    points = [(float(t_best[i]), np.asarray(t_best, float), float(chi2[0]))]
-    for end in (lo[i] + margin, hi[i] - margin):
-        if abs(end - t_best[i]) <= margin:
+    margin, held = 0.01 * (hi[i] - lo[i]), (also, float(t_start[also]) if also >= 0 else 0.0)
+    x0 = float(t_start[i])
+    xs, ts, chi2s = [], [], []
+    for end in (None, lo[i] + margin, hi[i] - margin):
+        if end is None:
+            points = np.array([x0])
+        elif abs(end - x0) <= margin:
             continue
-        t = jnp.asarray(t_best)[None]
-        for n in range(1, per_side + 1):
-            x = float(t_best[i] + n / per_side * (end - t_best[i]))
-            t, chi2, *_ = solve(t, pinned(i, x, steps, held))
-            if not np.isfinite(float(chi2[0])):
-                break
-            points.append((x, np.asarray(t[0]), float(chi2[0])))
-    points.sort(key=lambda p: p[0])
-    return tuple(np.array([p[n] for p in points]) for n in range(3))
+        else:
+            points = x0 + np.arange(1, per_side + 1) / per_side * (end - x0)
+        t, chi2 = pinned_walk(problem, t_start, i, points, also=held)
+        ok = np.isfinite(chi2)
+        xs.append(points[: len(chi2)][ok])
+        ts.append(t[ok])
+        chi2s.append(chi2[ok])
+    x, t, chi2 = np.concatenate(xs), np.concatenate(ts), np.concatenate(chi2s)
+    order = np.argsort(x)
+    return x[order], t[order], chi2[order]
 
 
 def _u_on_ridge(free, t):
@@ -386,24 +420,26 @@ def trace_ridge(problem: Problem, t_best, cov, per_side: int = 8) -> Ridge:
         if len(x) > 1 and np.all((t[:, others] > lo[others] + room[others]) & (t[:, others] < hi[others] - room[others])):
             y = np.array(_u_on_ridge(problem.free, t) - _u_on_ridge(problem.free, t_best))
             y[:, i] = 0.0
-            return Ridge(i, x, t, chi2, y, _knot_slopes(x, y))
-        traced.append(Ridge(i, x, t, chi2, flat, flat))
+            return Ridge.from_profiles(i, i, [t_best[i]], [(x, t, chi2, y)])
+        traced.append(Ridge.from_profiles(i, i, [t_best[i]], [(x, t, chi2, flat)]))
     return traced[0]
 
 
 SECOND_RIDGE_WIDTH = 0.3  # a second shear where a parameter's SD given the leader is ≥ 0.3 of its flat prior's
+SECOND_RIDGE_AT = (0.1, 0.5, 0.9)  # the leader's profile-posterior quantiles it is traced at
 
 
-def trace_second_ridge(problem: Problem, t_centre, cov, ridge: Ridge, per_side: int = 8):
+def trace_second_ridge(problem: Problem, t_best, cov, ridge: Ridge, per_side: int = 8):
     """A second shear, applied before `ridge`'s (`u_from_w`), for a parameter j that
-    stays wide given the leader (conditional SD in the Laplace covariance `cov` at least
+    stays wide given the leader i (conditional SD in the Laplace covariance `cov` at least
     `SECOND_RIDGE_WIDTH` of its flat prior's, the largest on the principal axis given the
-    leader) and bends the others as it moves (the Engelmayr problem's lumping_C shifts the
-    k_c,max–k_a ridge by several of its widths over its range): j's profile (`_profile`)
-    from `t_centre`, a point of `ridge`, with the leader held there, taken through the
-    first shear: x = t_from_u of j's coordinate there, y the others' offsets along it,
-    the leader's column zero. None where no parameter is that wide or `ridge` carries no
-    shear."""
+    leader) and bends the others as it moves, by an amount that may change along the
+    ridge (the Engelmayr problem's lumping_C shifts the k_c,max–k_a ridge by several of
+    its widths, most where k_a meets its bound): j's profile (`_profile`) with i held at
+    each of the `SECOND_RIDGE_AT` quantiles of its profile posterior, from `ridge`'s
+    point there, taken through the first shear: x = t_from_u of j's coordinate there,
+    y the others' offsets from the optimum's. None where no parameter is that wide or
+    `ridge` carries no shear."""
     if not straightens(ridge):
         return None
     i = ridge.leader
@@ -413,18 +449,22 @@ def trace_second_ridge(problem: Problem, t_centre, cov, ridge: Ridge, per_side: 
     j = _leading(given, scale, exclude=(i,))[0]
     if np.sqrt(given[j, j]) < SECOND_RIDGE_WIDTH * scale[j]:
         return None
-    _, t, chi2 = _profile(problem, t_centre, j, per_side, also=i)
-    if len(chi2) < 2:
-        return None
-    u = np.array(_u_on_ridge(problem.free, t))
-    u[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(t)))[:, j]  # j's own knots unclipped: distinct, in place
-    v = np.array(w_from_u(problem.free, (ridge.arrays(),), jnp.asarray(u)))
-    x = np.asarray(t_from_u(problem.free, jnp.asarray(v)))[:, j]
-    y = v - v[np.argmin(chi2)]
-    y[:, [i, j]] = 0.0
-    order = np.argsort(x)
-    x, t, chi2, y = x[order], t[order], chi2[order], y[order]
-    return Ridge(j, x, t, chi2, y, _knot_slopes(x, y))
+    first = (ridge.arrays(),)
+    reference = np.asarray(w_from_u(problem.free, first, _u_on_ridge(problem.free, t_best)))
+    x1, t1, _ = ridge.profile()
+    at = np.interp(SECOND_RIDGE_AT, *_cumulative(_profile_posterior(problem, ridge), x1))
+    profiles = []
+    for a in at:
+        _, t, chi2 = _profile(problem, np.array([np.interp(a, x1, t1[:, n]) for n in range(len(t_best))]), j, per_side, also=i)
+        u = np.array(_u_on_ridge(problem.free, t))
+        u[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(t)))[:, j]  # j's own knots unclipped: distinct, in place
+        v = np.asarray(w_from_u(problem.free, first, jnp.asarray(u)))
+        x = np.asarray(t_from_u(problem.free, jnp.asarray(v)))[:, j]
+        y = v - reference
+        y[:, [i, j]] = 0.0
+        order = np.argsort(x)
+        profiles.append((x[order], t[order], chi2[order], y[order]))
+    return Ridge.from_profiles(j, i, at, profiles)
 
 
 def straightens(ridge: Ridge) -> bool:
@@ -454,23 +494,30 @@ def u_from_z(free, args, z):
 
 
 def _profile_posterior(problem: Problem, ridge: Ridge) -> np.ndarray:
-    """Weights of `ridge`'s knots under its leader's profile posterior, exp(−χ²/2) ×
-    prior × knot spacing, normalised."""
+    """Weights of the knots of `ridge`'s profile (`Ridge.profile`) under its leader's
+    profile posterior, exp(−χ²/2) × prior × knot spacing, normalised."""
+    x, _, chi2 = ridge.profile()
     f = problem.free[ridge.leader]
-    log_p = -0.5 * ridge.chi2 + np.asarray(f.prior_density.log_density(f.from_t(jnp.asarray(ridge.x))))
-    log_p = log_p + (ridge.x if f.transform == "log" else 0.0)
-    p = np.exp(log_p - log_p.max()) * (np.gradient(ridge.x) if len(ridge.x) > 1 else 1.0)
+    log_p = -0.5 * chi2 + np.asarray(f.prior_density.log_density(f.from_t(jnp.asarray(x))))
+    log_p = log_p + (x if f.transform == "log" else 0.0)
+    p = np.exp(log_p - log_p.max()) * np.gradient(x)
     return p / p.sum()
+
+
+def _cumulative(p, x):
+    """(the cumulative weight at each knot's midpoint, x): `np.interp` of levels over it
+    gives quantiles of the weights p at the knots x."""
+    return np.cumsum(p) - 0.5 * p, x
 
 
 def _quantiles(p, x, n: int) -> np.ndarray:
     """n evenly spaced quantiles of the weights p at the knots x."""
-    return np.interp((np.arange(n) + 0.5) / n, np.cumsum(p) - 0.5 * p, x)
+    return np.interp((np.arange(n) + 0.5) / n, *_cumulative(p, x))
 
 
 def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float = 0.5, seed: int = 0) -> Whitening:
     """The sampler's coordinates (docs/numerics.md, "Posterior sampling"): the ridge
-    (`trace_ridge`) and a second one through its centre (`trace_second_ridge`), straightened by `u_from_w`
+    (`trace_ridge`) and a second one (`trace_second_ridge`), straightened by `u_from_w`
     where they can be, then w = c + L z with c the ridges' centre and L Lᵀ the Laplace
     covariance of t (`laplace_inverse_mass`) given each sheared leader, whose own
     variance is that of its profile posterior (exp(−χ²/2) × prior at the knots): the
@@ -484,14 +531,13 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
     cov = laplace_inverse_mass(problem, t_best, jacobian)
     ridge = trace_ridge(problem, t_best, cov)
     k = len(t_best)
-    p = _profile_posterior(problem, ridge)
-    centre = np.array([np.interp(p @ ridge.x, ridge.x, ridge.t[:, j]) for j in range(k)])
-    second = trace_second_ridge(problem, centre, cov, ridge)
+    second = trace_second_ridge(problem, t_best, cov, ridge)
     ridges = (ridge,) if second is None else (ridge, second)
     arrays = tuple(r.arrays() for r in ridges)
     p = [_profile_posterior(problem, r) for r in ridges]
-    mean = [float(q @ r.x) for q, r in zip(p, ridges)]
-    variance = [float(q @ (r.x - m) ** 2) for q, r, m in zip(p, ridges, mean)]
+    x = [r.profile()[0] for r in ridges]
+    mean = [float(q @ xr) for q, xr in zip(p, x)]
+    variance = [float(q @ (xr - m) ** 2) for q, xr, m in zip(p, x, mean)]
     i = ridge.leader
     if straightens(ridge):
         lead = np.array([r.leader for r in ridges])
@@ -506,12 +552,12 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
         cov = cov + max(variance[0] - cov[i, i], 0.0) * np.outer(direction, direction)
     # the centre and the starts: points of the leading profile, its leader at its mean
     # and quantiles; the second leader (in w) likewise, in reverse order
-    along = np.stack([np.interp(np.append(mean[0], _quantiles(p[0], ridge.x, chains)), ridge.x, ridge.t[:, j])
-                      for j in range(k)], axis=-1)
+    x1, t1, _ = ridge.profile()
+    along = np.stack([np.interp(np.append(mean[0], _quantiles(p[0], x1, chains)), x1, t1[:, j]) for j in range(k)], axis=-1)
     w = np.array(w_from_u(problem.free, arrays, u_from_t(problem.free, jnp.asarray(along))))
     if second is not None:
-        j, x = second.leader, np.append(mean[1], _quantiles(p[1], second.x, chains)[::-1])
-        w[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(np.outer(x, np.ones(k)))))[:, j]
+        j, x2 = second.leader, np.append(mean[1], _quantiles(p[1], x[1], chains)[::-1])
+        w[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(np.outer(x2, np.ones(k)))))[:, j]
     c = w[0]
     L = np.linalg.cholesky(cov)
     z0 = np.linalg.solve(L, (w[1:] - c).T).T + jitter * np.random.default_rng(seed).normal(size=(chains, k))
