@@ -355,8 +355,8 @@ def test_sample_straightens_a_twisted_sheet():
 def test_ridge_coordinates_invert_and_differentiate():
     """The shear `u_from_w`: with the knots of y = x² and its exact slopes, the cubic
     Hermite interpolant is exact (it reproduces cubics) and straight beyond the knots;
-    `w_from_u` inverts it; with the two shears `whitening` builds for a twisted sheet, z ↦ u inverts and the log density in z has the gradient of central
-    differences."""
+    `w_from_u` inverts it; with the two shears `whitening` builds for a twisted sheet,
+    z ↦ u inverts and the log density in z has the gradient of central differences."""
     problem = _CurvedRidge()
     free = problem.free
     x = np.linspace(-1.2, 1.0, 7)

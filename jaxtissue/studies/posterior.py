@@ -301,6 +301,12 @@ class Ridge(NamedTuple):
         m = len(self.at) // 2
         return self.x[m], self.t[m], self.chi2[m]
 
+    def along(self, values) -> np.ndarray:
+        """The points (n, k) of `profile` with the leader at `values` (n,), interpolated
+        linearly between its knots."""
+        x, t, _ = self.profile()
+        return np.stack([np.interp(values, x, t[:, j]) for j in range(t.shape[1])], axis=-1)
+
 
 def _hermite(x, knots, y, slope):
     """The cubic Hermite interpolant of (y, slope) at the knots (C¹), straight beyond them."""
@@ -369,14 +375,10 @@ def _profile(problem: Problem, t_start, i: int, per_side: int, also: int = -1):
     lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
     margin, held = 0.01 * (hi[i] - lo[i]), (also, float(t_start[also]) if also >= 0 else 0.0)
     x0 = float(t_start[i])
+    walks = [np.array([x0])] + [x0 + np.arange(1, per_side + 1) / per_side * (end - x0)
+                                for end in (lo[i] + margin, hi[i] - margin) if abs(end - x0) > margin]
     xs, ts, chi2s = [], [], []
-    for end in (None, lo[i] + margin, hi[i] - margin):
-        if end is None:
-            points = np.array([x0])
-        elif abs(end - x0) <= margin:
-            continue
-        else:
-            points = x0 + np.arange(1, per_side + 1) / per_side * (end - x0)
+    for points in walks:
         t, chi2 = pinned_walk(problem, t_start, i, points, also=held)
         ok = np.isfinite(chi2)
         xs.append(points[: len(chi2)][ok])
@@ -451,11 +453,10 @@ def trace_second_ridge(problem: Problem, t_best, cov, ridge: Ridge, per_side: in
         return None
     first = (ridge.arrays(),)
     reference = np.asarray(w_from_u(problem.free, first, _u_on_ridge(problem.free, t_best)))
-    x1, t1, _ = ridge.profile()
-    at = np.interp(SECOND_RIDGE_AT, *_cumulative(_profile_posterior(problem, ridge), x1))
+    at = np.interp(SECOND_RIDGE_AT, *_cumulative(_profile_posterior(problem, ridge), ridge.profile()[0]))
     profiles = []
-    for a in at:
-        _, t, chi2 = _profile(problem, np.array([np.interp(a, x1, t1[:, n]) for n in range(len(t_best))]), j, per_side, also=i)
+    for start in ridge.along(at):
+        _, t, chi2 = _profile(problem, start, j, per_side, also=i)
         u = np.array(_u_on_ridge(problem.free, t))
         u[:, j] = np.asarray(u_from_t(problem.free, jnp.asarray(t)))[:, j]  # j's own knots unclipped: distinct, in place
         v = np.asarray(w_from_u(problem.free, first, jnp.asarray(u)))
@@ -552,8 +553,7 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
         cov = cov + max(variance[0] - cov[i, i], 0.0) * np.outer(direction, direction)
     # the centre and the starts: points of the leading profile, its leader at its mean
     # and quantiles; the second leader (in w) likewise, in reverse order
-    x1, t1, _ = ridge.profile()
-    along = np.stack([np.interp(np.append(mean[0], _quantiles(p[0], x1, chains)), x1, t1[:, j]) for j in range(k)], axis=-1)
+    along = ridge.along(np.append(mean[0], _quantiles(p[0], x[0], chains)))
     w = np.array(w_from_u(problem.free, arrays, u_from_t(problem.free, jnp.asarray(along))))
     if second is not None:
         j, x2 = second.leader, np.append(mean[1], _quantiles(p[1], x[1], chains)[::-1])
