@@ -25,7 +25,22 @@ from .result import OUTPUTS as OUTPUTS, RESULTS as RESULTS, Result as Result  # 
 from .simulate import SolverOptions as SolverOptions, simulate as simulate  # noqa: E402
 from .state import State as State, Transport as Transport  # noqa: E402
 
-from . import studies as studies  # noqa: E402
-from .studies import calibration, checkpoint, optimization, posterior, reproduce, sensitivity, sweep  # noqa: E402, F401  (jt.calibration, …)
-
 __version__ = "0.1.0"
+
+_STUDIES = frozenset({"studies", "calibration", "checkpoint", "optimization", "posterior", "reproduce", "sensitivity", "sweep"})
+
+
+def __getattr__(name: str):
+    """`jt.studies` and its workflows (`jt.calibration`, …) load on first use: a plain run
+    (`jaxtissue simulate`) does not pay for importing them."""
+    if name not in _STUDIES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    module = importlib.import_module(".studies" if name == "studies" else f".studies.{name}", __name__)
+    globals()[name] = module
+    return module
+
+
+def __dir__():
+    return sorted(set(globals()) | _STUDIES)

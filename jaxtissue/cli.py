@@ -309,13 +309,14 @@ def cmd_simulate(args) -> int:
     import pathlib
     import shutil
 
-    from . import io, limits, plots
+    # the writers' libraries, used after the run (xarray's netCDF writer looks for dask's scheduler)
+    writers = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.distributed")
+    from . import io, limits
     from .coupling import with_rule_constant
     from .grid import Grid
     from .params import Params
     from .protocol import Protocol
     from .simulate import SolverOptions, simulate
-    from .studies.checkpoint import simulate_checkpointed
 
     if args.checkpoint_every is not None and args.save != "intervals":
         raise InputError("--checkpoint-every saves every interval; drop --save end")
@@ -368,6 +369,8 @@ def cmd_simulate(args) -> int:
             io.atomic_write_text(kept / "run.json", json.dumps(run, indent=1))
         from tqdm.auto import tqdm
 
+        from .studies.checkpoint import simulate_checkpointed
+
         with tqdm(desc="segments", unit="segment", disable=not progress) as bar:
             def tick(k, n):
                 bar.total = n
@@ -377,6 +380,9 @@ def cmd_simulate(args) -> int:
     if bool(result.failed):
         print(f"jaxtissue: error: {as_flags(result.failure_message())}. Nothing was written.", file=sys.stderr)
         return 1
+    writers.join()
+    from . import plots
+
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_netcdf(result.to_xarray(), tmp / "result.nc")
         io.write_json(tmp / "summary.json", summary(result, args.regime) | {"warnings": notes} |
@@ -388,6 +394,26 @@ def cmd_simulate(args) -> int:
         shutil.rmtree(kept, ignore_errors=True)
     print(f"wrote {args.out}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
     return 0
+
+
+def _import_in_background(*modules: str):
+    """A started daemon thread importing `modules` while the main thread traces and runs
+    the computation (which releases the interpreter while it runs). Join it before the
+    main thread imports them; a module that fails here is left to fail there, with the
+    command's own error handling."""
+    import importlib
+    import threading
+
+    def load():
+        for name in modules:
+            try:
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001 (reported where the main thread imports it)
+                pass
+
+    thread = threading.Thread(target=load, name="jaxtissue imports", daemon=True)
+    thread.start()
+    return thread
 
 
 def summary(result, regime: str) -> dict:

@@ -85,6 +85,24 @@ def test_numerics_and_plots_import_no_model_or_study():
     assert not any(d.startswith("jaxtissue.studies") for d in graph["jaxtissue.plots"])
 
 
+def test_the_workflows_load_on_first_use():
+    """`import jaxtissue` (and so every command) does not import `jaxtissue.studies`; its
+    modules still come as attributes (`jt.calibration`, `from jaxtissue import sweep`)."""
+    graph = dependencies()
+    assert not any(d.startswith("jaxtissue.studies") for d in graph["jaxtissue"] | graph["jaxtissue.studies"])
+    import jaxtissue as jt
+    from jaxtissue import sweep
+
+    assert jt.calibration.__name__ == "jaxtissue.studies.calibration" and sweep is jt.studies.sweep
+    assert {"studies", "posterior"} <= set(dir(jt)) and "sweep_dask" in dir(jt.studies)
+    try:
+        jt.no_such_workflow
+    except AttributeError as err:
+        assert "no_such_workflow" in str(err)
+    else:
+        raise AssertionError("an unknown attribute must raise AttributeError")
+
+
 def _python_files():
     for folder in ("jaxtissue", "tests", "benchmarks", "calibrate"):
         yield from (ROOT / folder).rglob("*.py")

@@ -6,15 +6,18 @@ and `checkpoint` (runs in saved segments). Their problem files share one reader
 (`_problem_files`); `petab_problems` reads and writes calibration problems as PEtab v2
 files (import it on use: the petab library takes seconds to import)."""
 
-from . import (
-    calibration as calibration,
-    checkpoint as checkpoint,
-    objectives as objectives,
-    optimization as optimization,
-    posterior as posterior,
-    priors as priors,
-    reproduce as reproduce,
-    sensitivity as sensitivity,
-    sweep as sweep,
-    sweep_dask as sweep_dask,
-)
+_MODULES = frozenset({"calibration", "checkpoint", "objectives", "optimization", "posterior", "priors", "reproduce",
+                      "sensitivity", "sweep", "sweep_dask"})
+
+
+def __getattr__(name: str):
+    """Each workflow loads on first use (`jaxtissue.studies.calibration`, …)."""
+    if name not in _MODULES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    return importlib.import_module(f".{name}", __name__)
+
+
+def __dir__():
+    return sorted(set(globals()) | _MODULES)
