@@ -309,8 +309,6 @@ def cmd_simulate(args) -> int:
     import pathlib
     import shutil
 
-    # the writers' libraries, used after the run (xarray's netCDF writer looks for dask's scheduler)
-    writers = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.distributed")
     from . import io, limits
     from .coupling import with_rule_constant
     from .grid import Grid
@@ -359,6 +357,8 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
     params, lumping_note = with_rule_constant(params, protocol.lumping)
     notes = limits.extrapolation(params, protocol, args.t_end)
+    # the writers' libraries, used after the run (xarray's netCDF writer looks for dask's scheduler)
+    writers = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.distributed")
     if args.checkpoint_every is None:
         result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress, save=args.save,
                           **resolution)
