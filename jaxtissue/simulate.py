@@ -169,18 +169,20 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             reached &= code == 0
         t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
+        n_intervals = len(times) - 1
+
         def bounds(k):  # (t0, t1) of interval k, from constants made where they are used
             return jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
 
         def loading(theta, y, k):
-            """The interval's loading cycle: its lumped transport and outputs."""
+            """The loading cycle at save time k: its lumped transport and outputs."""
             p, q = theta
-            _, cycle = flex_cycle(y, p, q.at(bounds(k)[0]), grid, beam_grid)
+            _, cycle = flex_cycle(y, p, q.at(jnp.asarray(times)[k]), grid, beam_grid)
             transport = lumped_transport(cycle, p, grid, beam_grid, q.lumping, q.pins)
             return transport, dict(post_force=cycle.post_force_max_N, strain=jnp.max(cycle.surface_strain), failed=cycle.failed)
 
-        def growth(theta, y, k, transport):
-            """The interval's growth solve with the transport frozen."""
+        def solve(theta, y, k, transport):
+            """Interval k's growth solve with the transport frozen."""
             p = theta[0]
             model = GrowthModel(coeffs=nondimensionalise(p), grid=grid, transport=transport, cell_transport=cell_transport,
                                 o2_sweeps=sweeps)
@@ -188,15 +190,23 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
             if progress:
                 jax.debug.callback(_Progress.tick, bounds(k)[1])
-            return y1, dict(series=observe(y1, p, grid), steps=sol.stats["num_steps"], code=_growth_code(sol))
+            return y1, dict(series=observe(y1, p, grid), steps=sol.stats["num_steps"].astype(jnp.int32),
+                            code=_growth_code(sol).astype(jnp.int32))
 
-        n_intervals = len(times) - 1
+        def end(theta, y, k, transport):
+            return y, dict(series=observe(y, theta[0], grid), steps=jnp.zeros((), jnp.int32), code=jnp.zeros((), jnp.int32))
+
+        def growth(theta, y, k, transport):
+            """Interval k's growth solve; none after the last save time, whose loading
+            cycle only reports (one scan step more: the cycle is compiled once)."""
+            return jax.lax.cond(k < n_intervals, solve, end, theta, y, k, transport)
+
         theta = (params, protocol)
         if options.nest_intervals and options.autodiff == "reverse":
             # the reverse pass keeps ~√n states and every interval's lumped transport, and
             # replays a chunk's states with the growth solves alone (no loading cycle)
             store = jnp.float32 if options.store_float32 else None
-            final, (cycles, out) = replayed_scan(loading, growth, theta, y0, n_intervals, store_dtype=store)
+            final, (cycles, out) = replayed_scan(loading, growth, theta, y0, n_intervals + 1, store_dtype=store)
         else:
             # each interval is rematerialised in the backward pass: memory holds one
             # state per interval plus one interval's working set (beam.py nests further)
@@ -216,13 +226,12 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
                 return (y1, dead | cycle["failed"] | (out["code"] != 0)), (cycle, out)
 
             # a run stops at its first failure (a loading cycle or growth solve)
-            (final, _), (cycles, out) = jax.lax.scan(step, (y0, jnp.asarray(False)), jnp.arange(n_intervals))
+            (final, _), (cycles, out) = jax.lax.scan(step, (y0, jnp.asarray(False)), jnp.arange(n_intervals + 1))
         start = observe(y0, params, grid)
-        series = {k: jnp.concatenate([start[k][None], v]) for k, v in out["series"].items()}
-        _, last_cycle = flex_cycle(final, params, protocol.at(times[-1]), grid, beam_grid)
-        series["post_force_max_N"] = jnp.concatenate([cycles["post_force"], last_cycle.post_force_max_N[None]])
-        series["surface_strain_max"] = jnp.concatenate([cycles["strain"], jnp.max(last_cycle.surface_strain)[None]])
-        codes = jnp.concatenate([jnp.where(cycles["failed"], 2, out["code"]), jnp.where(last_cycle.failed, 2, 0)[None]])
+        series = {k: jnp.concatenate([start[k][None], v[:-1]]) for k, v in out["series"].items()}
+        series["post_force_max_N"] = cycles["post_force"]
+        series["surface_strain_max"] = cycles["strain"]
+        codes = jnp.where(cycles["failed"], 2, out["code"])
         first = jnp.argmax(codes > 0)
         code, t_fail = codes[first], jnp.asarray(times)[first]
         num_steps = jnp.sum(out["steps"])

@@ -55,6 +55,20 @@ def test_rigidity_and_post_force_rise_with_time(cases):
     assert np.all(np.asarray(cases["static"].post_force_max_N) == 0)
 
 
+def test_the_last_post_force_is_the_cycle_at_the_end_state(cases):
+    """The loop's extra step (a loading cycle only, at the end state) reports what a
+    separate cycle at the final state gives."""
+    import sys
+
+    sim = sys.modules["jaxtissue.simulate"]
+    r = cases["10mm"]
+    p = jax.tree_util.tree_map(jnp.asarray, P)
+    _, cycle = sim.flex_cycle(r.final, p, jt.Protocol.flex(post_displacement_mm=10.0), COARSE["grid"], COARSE["beam"])
+    np.testing.assert_allclose(float(r.post_force_max_N[-1]), float(cycle.post_force_max_N), rtol=1e-12)
+    np.testing.assert_allclose(float(r.surface_strain_max[-1]), float(jnp.max(cycle.surface_strain)), rtol=1e-12)
+    assert float(r.post_force_max_N[-1]) > float(r.post_force_max_N[-2])
+
+
 def test_flex_adds_ecm_deep_in_the_construct_and_ends_evolve_alike(cases):
     """Fig. 7/8: flex raises the core; near the posts, where the strip barely bends,
     the two regimes stay close."""
