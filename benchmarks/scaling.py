@@ -5,10 +5,13 @@ For each grid: wall time after compilation (best of `--repeat`), growth steps, t
 cell-step, the compiled program's XLA buffer memory, the compile time, and the 3-week
 collagen — which doubles as a grid-convergence table (the observed order from the
 three finest grids). With `--gradient`, the gradient of 3-week collagen with respect to
-all parameters on the two smallest grids (nested intervals stored in float32).
+all parameters on the two smallest grids, and with `--large` also on 400 × 320 (nested
+intervals stored in float32).
 
-    python benchmarks/scaling.py [--large] [--gradient] [--repeat N] [--grids 50x40,100x80]
-      (--large adds 400 x 320, 128 000 cells; --grids runs the grids named instead)
+    python benchmarks/scaling.py [--large] [--gradient] [--repeat N] [--grids 50x40,100x80] [--xla-defaults]
+      (--large adds 400 x 320, 128 000 cells; --grids runs the grids named instead;
+      --xla-defaults: XLA's default CPU emitters instead of the command line's
+      `jaxtissue.cache.use_fast_compilation`)
 """
 
 from __future__ import annotations
@@ -16,10 +19,14 @@ from __future__ import annotations
 import sys
 import time
 
-import jax
-import numpy as np
+from jaxtissue.cache import use_fast_compilation
 
-import jaxtissue as jt
+FAST = "--xla-defaults" not in sys.argv and use_fast_compilation()  # as the command line, before JAX starts
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxtissue as jt  # noqa: E402
 
 GRIDS = [(50, 40), (100, 80), (200, 160)]
 LARGE = (400, 320)
@@ -49,7 +56,8 @@ def run(grid, gradient=False, repeat=1):
 
 def main(large=False, gradient=False, repeat=1, grids=None):
     grids = grids or GRIDS + ([LARGE] if large else [])
-    print("3-week flex run (1 Hz, 5 mm), default solver options, on 2 CPU cores unless the device says otherwise:", jax.devices()[0])
+    print("3-week flex run (1 Hz, 5 mm), default solver options, on 2 CPU cores unless the device says otherwise:", jax.devices()[0],
+          "; XLA's " + ("classic CPU fusion emitter (the command line's setting)" if FAST else "default CPU emitters"))
     print(f"{'grid':>10s}{'cells':>8s}{'run (s)':>10s}{'x 50x40':>9s}{'steps':>7s}{'us/cell-step':>14s}"
           f"{'MiB':>8s}{'compile (s)':>13s}{'collagen (mg/g)':>18s}")
     rows, base = [], None
@@ -67,7 +75,7 @@ def main(large=False, gradient=False, repeat=1, grids=None):
               f"{np.log2(abs(d1 / d2)) if d2 else float('inf'):.2f}; Richardson estimate of the limit {c[-1] + d2 / (abs(d1 / d2) - 1) if d2 and abs(d1 / d2) > 1 else c[-1]:.9f}")
     if gradient:
         print("\ngradient of 3-week collagen w.r.t. all parameters (nested intervals, float32 storage)")
-        for nx, ny in grids[:2]:
+        for nx, ny in grids[:2] + ([LARGE] if large and LARGE not in grids[:2] else []):
             seconds, compile_s, mib, g = run(jt.Grid(nx, ny), gradient=True, repeat=repeat)
             finite = all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(g))
             print(f"{nx:>4d} x {ny:<3d}  {seconds:.2f} s, {mib:.1f} MiB, compile {compile_s:.1f} s, finite: {finite}", flush=True)

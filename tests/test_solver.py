@@ -268,3 +268,43 @@ def test_o2_sweeps_option_is_checked_and_chosen_from_the_strip():
     assert default_o2_sweeps(jt.Grid(50, 40), jt.paper_parameters()) == 6
     assert default_o2_sweeps(jt.Grid(50, 40), jt.paper_parameters().replace(length_mm=5.0)) == 0  # Δx = h/10
     assert default_o2_sweeps(jt.Grid(1, 40), jt.paper_parameters()) == 0
+
+
+@pytest.mark.slow  # the 2-D solves at fine grids: test_multigrid_contracts_for_any_cell_aspect_ratio, test_order_in_time_with_line_relaxation
+def test_order_and_gradient_on_a_200_by_160_grid():
+    """On the 200 × 160 grid (multigrid O2 solves): ROS34PW2 with fixed steps keeps its
+    third order (self-convergence: the differences of successive halvings shrink ~8×),
+    and the gradient of a short flex run's collagen matches central differences as on
+    coarse grids (`test_coupling.test_gradient_through_the_staggered_run`)."""
+    from jaxtissue.beam import BeamGrid
+
+    grid, params = jt.Grid(200, 160), jt.paper_parameters()
+    assert default_o2_sweeps(grid, params) == 0  # multigrid
+    y0 = jt.simulate(params, t_end_s=2.0e4, grid=grid, options=jt.SolverOptions(rtol=1e-8, atol=1e-11)).final
+    model = GrowthModel(nondimensionalise(params), grid, cell_transport=False, o2_sweeps=0)
+    solve = jax.jit(lambda dt: _solve(ROS34PW2(), y0, diffrax.ConstantStepSize(), dt, field=model))
+    ns = [4, 8, 16, 32, 64]
+    ys = [solve(jnp.asarray(T / n)) for n in ns]
+    differences = [float(jnp.max(jnp.abs(a - b))) for a, b in zip(ys[:-1], ys[1:])]
+    orders = observed_orders([T / n for n in ns[:-1]], differences)
+    print("200 x 160, fixed steps", ns, "successive differences", differences, "orders", orders)
+    assert np.all(orders[1:] > 2.7), (differences, orders)
+
+    kw = dict(t_end_s=6.0e4, grid=grid, beam=BeamGrid(n_segments=8, steps_per_cycle=40), coupling_interval_s=2.0e4,
+              options=jt.SolverOptions(fixed_steps=6, dt0_s=5.0))
+
+    def collagen(p):
+        return jt.simulate(p, jt.Protocol.flex(), **kw).collagen_mg_per_g[-1]
+
+    def arrays(p):
+        return jax.tree_util.tree_map(jnp.asarray, p)
+
+    g = jax.jit(jax.grad(collagen))(arrays(params))
+    forward = jax.jit(collagen)
+    for name in ("k_m0", "k_c_max"):
+        v = getattr(params, name)
+        h = 1e-4 * v
+        fd = (float(forward(arrays(params.replace(**{name: v + h})))) - float(forward(arrays(params.replace(**{name: v - h}))))) / (2 * h)
+        ad = float(getattr(g, name))
+        print(f"200 x 160 flex, d collagen / d {name}: reverse mode {ad:.6e}, central differences {fd:.6e}")
+        assert ad == pytest.approx(fd, rel=1e-3), (name, ad, fd)  # as on coarse grids (J̃ held constant: docs/numerics.md)

@@ -268,13 +268,15 @@ class FivePointFactor(eqx.Module):
 
     def solve(self, r: Field) -> Field:
         op = self.op
-        # (the repeats as loops, not unrolled: one copy of each in the program)
-        if self.levels is None:  # line Jacobi from u = 0: u ← Y⁻¹ (r − X u), `sweeps` times
-            u = thomas_solve(self.thomas, r)
-            return jax.lax.fori_loop(1, self.sweeps, lambda _, u: thomas_solve(self.thomas, r - op.x_coupling(u)), u)
-        # multigrid from u = 0: u ← u + V(r − A u), `cycles` times (a fixed linear map)
-        u = _v_cycle(self.levels, r)
-        return jax.lax.fori_loop(1, self.cycles, lambda _, u: u + _v_cycle(self.levels, r - op(u)), u)
+        if self.levels is None and self.sweeps == 1:  # 1-D: Thomas is exact
+            return thomas_solve(self.thomas, r)
+        # the repeats as loops from u = 0, the first sweep or cycle included: one copy of
+        # each in the program (the first's products with u = 0 are exact zeros)
+        u = jnp.zeros_like(r)
+        if self.levels is None:  # line Jacobi: u ← Y⁻¹ (r − X u), `sweeps` times
+            return jax.lax.fori_loop(0, self.sweeps, lambda _, u: thomas_solve(self.thomas, r - op.x_coupling(u)), u)
+        # multigrid: u ← u + V(r − A u), `cycles` times (a fixed linear map)
+        return jax.lax.fori_loop(0, self.cycles, lambda _, u: u + _v_cycle(self.levels, r - op(u)), u)
 
 
 def line_sweeps(nx: int, thickness_over_cell_length: float, target: float = 0.01, most: int = 8) -> int:
