@@ -122,16 +122,18 @@ def piece_compiles(params, protocol, y):
     the gradient of the whole run compiles at least once."""
     options = jt.SolverOptions(o2_sweeps=default_o2_sweeps(GRID, params))
 
+    def lumped(p, q, y):
+        return lumped_transport(flex_cycle(y, p, q, GRID, BEAM)[1], p, GRID, BEAM, "dispersive", "centroid")
+
     def transport(p, q, y):
-        t = lumped_transport(flex_cycle(y, p, q, GRID, BEAM)[1], p, GRID, BEAM, "dispersive", "centroid")
-        return sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(t))
+        return sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(lumped(p, q, y)))
 
     def growth(p, y, t):
         model = GrowthModel(coeffs=nondimensionalise(p), grid=GRID, transport=t, cell_transport=has_cell_transport(params),
                             o2_sweeps=options.o2_sweeps)
         return jnp.sum(growth_solve(model, y, 0.0, 2.0e4, None, options, (p, GRID), checkpoints=8).ys.m)
 
-    t = lumped_transport(flex_cycle(y, params, protocol, GRID, BEAM)[1], params, GRID, BEAM, "dispersive", "centroid")
+    t = lumped(params, protocol, y)
     out = {}
     for name, fn, args in (("one loading cycle", transport, (params, protocol, y)), ("one growth interval", growth, (params, y, t))):
         t0 = time.perf_counter()

@@ -193,7 +193,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             return y1, dict(series=observe(y1, p, grid), steps=sol.stats["num_steps"].astype(jnp.int32),
                             code=_growth_code(sol).astype(jnp.int32))
 
-        def end(theta, y, k, transport):
+        def end(theta, y, k, transport):  # its series entry is dropped below (the run ends at the last save time)
             return y, dict(series=observe(y, theta[0], grid), steps=jnp.zeros((), jnp.int32), code=jnp.zeros((), jnp.int32))
 
         def growth(theta, y, k, transport):

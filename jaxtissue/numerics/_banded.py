@@ -268,7 +268,7 @@ class FivePointFactor(eqx.Module):
 
     def solve(self, r: Field) -> Field:
         op = self.op
-        if self.levels is None and self.sweeps == 1:  # 1-D: Thomas is exact
+        if self.levels is None and self.sweeps == 1:  # one sweep from zero (in 1-D exact)
             return thomas_solve(self.thomas, r)
         # the repeats as loops from u = 0, the first sweep or cycle included: one copy of
         # each in the program (the first's products with u = 0 are exact zeros)
