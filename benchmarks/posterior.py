@@ -60,14 +60,16 @@ def main():
     # ---- NUTS
     settings = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples)
     white = post.whitening(problem, best.t, best.jacobian, args.chains)  # the coordinates `calibrate --posterior` samples in
-    z0, sampler_args = white.z0, white.args()
-    programs = post.whitened_programs(problem, settings)
+    z0, sampler_args = white.z0, post.sampler_args(white)
+    halves = post.corrects(settings)  # as `calibrate --posterior`: corrected halfway through the warmup
+    programs, refit = post.whitened_programs(problem, settings, 2 if halves else 1), post.correct if halves else None
     start = time.perf_counter()
     short = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=1)
-    post.run_chains(programs, z0, np.eye(k), short, args=sampler_args, chunk=args.samples)  # compiles both programs (the chunk length too)
+    post.run_chains(programs, z0, np.eye(k), short, args=sampler_args, chunk=args.samples, refit=refit)  # compiles both programs
     compile_s = time.perf_counter() - start
-    (z, _, div, _, steps), _, _, seconds = post.run_chains(programs, z0, np.eye(k), settings, args=sampler_args, chunk=args.samples)
-    u = np.asarray(post.u_from_z(problem.free, sampler_args, jnp.asarray(z)))
+    (v, _, div, _, steps), _, _, seconds, used = post.run_chains(programs, z0, np.eye(k), settings, args=sampler_args,
+                                                                 chunk=args.samples, refit=refit)
+    u = np.asarray(post.u_from_v(problem, used, jnp.asarray(v)))
     nuts_s = seconds["warmup"] + seconds["sampling"]
     az = post.import_arviz()
     ess_nuts = np.asarray(az.ess(az.from_dict(posterior={"u": u}), method="bulk")["u"].values)
@@ -79,7 +81,7 @@ def main():
     import emcee
 
     log_density = jax.jit(jax.vmap(post.log_density_fn(problem)))
-    walkers = np.asarray(post.u_from_z(problem.free, sampler_args, jnp.asarray(0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)))))
+    walkers = np.asarray(post.u_from_v(problem, sampler_args, jnp.asarray(0.1 * np.random.default_rng(0).normal(size=(args.walkers, k)))))
     start = time.perf_counter()
     jax.block_until_ready(log_density(jnp.asarray(walkers)))
     compile_e = time.perf_counter() - start

@@ -19,7 +19,9 @@ coupled solve), wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 The sampler's coordinates follow the posterior's longest ridge as the profile
 likelihood traces it (`trace_ridge`: the leading parameter pinned, the others
 re-optimised) and a second ridge across it (`trace_second_ridge`), straightened by
-shears (`u_from_w`) and whitened (`whitening`). Chains run batched under `vmap` (split
+shears (`u_from_w`) and whitened (`whitening`), then corrected halfway through the
+warmup where the chains find the posterior's mass off the profile's ridge or of another
+width (`fit_correction`, `z_from_v`). Chains run batched under `vmap` (split
 over the devices when there are several, e.g. one per CPU core:
 `sweep.use_all_cores`), each with its own warmup (Stan's window adaptation of the
 step size and a dense mass matrix). R-hat, effective sample sizes and quantiles are
@@ -166,7 +168,7 @@ class Draws(NamedTuple):
     acceptance_rate: np.ndarray
     leapfrog_steps: np.ndarray
     step_size: np.ndarray  # (chains,)
-    inverse_mass_matrix: np.ndarray  # (chains, k, k), in the ridge coordinates w (`u_from_w`), not u
+    inverse_mass_matrix: np.ndarray  # (chains, k, k), in the sampler's coordinates v (`u_from_v`), not u
     seconds: dict  # "warmup", "sampling"
 
 
@@ -183,12 +185,13 @@ def laplace_inverse_mass(problem: Problem, t_best, jacobian) -> np.ndarray:
     return np.linalg.inv(J.T @ J + np.diag(12.0 / (hi - lo) ** 2))
 
 
-def nuts_programs(log_density, settings: SamplerSettings):
+def nuts_programs(log_density, settings: SamplerSettings, phases: int = 1):
     """Jitted (adapt, draws) for `log_density(u, args)`, batched over chains.
 
     `adapt(keys, u0, imm0, args)`: window adaptation (dense mass matrix seeded with imm0)
-    of each chain from its start u0, returning its state, step size and inverse mass
-    matrix; `draws(keys, state, step_size, imm, args)`: one NUTS draw per key (keys of
+    of each chain from its start u0, `settings.warmup // phases` steps, returning its
+    state, step size, inverse mass matrix and the positions it passed through;
+    `draws(keys, state, step_size, imm, args)`: one NUTS draw per key (keys of
     shape (chains, n, 2)), returning the final state and (position, log density,
     divergent, acceptance rate, leapfrog steps) of each draw."""
     import blackjax
@@ -199,8 +202,8 @@ def nuts_programs(log_density, settings: SamplerSettings):
                                             initial_step_size=settings.initial_step_size,
                                             target_acceptance_rate=settings.target_acceptance,
                                             max_num_doublings=settings.warmup_tree_depth)
-        (state, parameters), _ = warmup.run(key, u0, num_steps=settings.warmup)
-        return state, parameters["step_size"], parameters["inverse_mass_matrix"]
+        (state, parameters), info = warmup.run(key, u0, num_steps=settings.warmup // phases)
+        return state, parameters["step_size"], parameters["inverse_mass_matrix"], info.state.position
 
     def draws(keys, state, step_size, inverse_mass_matrix, args):
         kernel = blackjax.nuts(lambda u: log_density(u, args), step_size, inverse_mass_matrix,
@@ -226,21 +229,33 @@ def nuts_programs(log_density, settings: SamplerSettings):
     return jax.jit(adapt), jax.jit(draws)
 
 
-def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50):
+def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50, refit=None):
     """Warmup then `settings.samples` draws per chain with `nuts_programs`' pair, the
     draws in chunks (one compiled chunk length) with `progress(n)` after each.
+    `refit(path, end, args) -> (args, u)`: the warmup runs in two halves (programs built
+    with `phases=2`), and between them `refit` turns the first half's positions `path`
+    (chains, steps, k) and end points into new args and starts for the second, which
+    starts from the first's inverse mass matrix averaged over the chains.
     Returns (position, log density, divergent, acceptance, leapfrog steps) arrays of
-    shape (chains, samples, ...), the step sizes, inverse mass matrices and seconds."""
+    shape (chains, samples, ...), the step sizes, inverse mass matrices and seconds, and
+    the args the draws ran with."""
     adapt, draws = programs
     chunk = min(chunk, settings.samples)
     key_warmup, key_draws = jax.random.split(jax.random.PRNGKey(settings.seed))
     chains = np.shape(u0)[0]
     seconds = {}
     start = time.perf_counter()
-    state, step_size, imm = jax.block_until_ready(adapt(jax.random.split(key_warmup, chains), jnp.asarray(u0), jnp.asarray(imm0), args))
+    keys = jax.random.split(key_warmup, 2 * chains)
+    state, step_size, imm, path = jax.block_until_ready(adapt(keys[:chains], jnp.asarray(u0), jnp.asarray(imm0), args))
+    if refit is not None:
+        if progress is not None:
+            progress(settings.warmup // 2)
+        args, u1 = refit(np.asarray(path), np.asarray(state.position), args)
+        imm0 = np.mean(np.asarray(imm), axis=0)  # the second half starts from the first's metric, pooled over the chains
+        state, step_size, imm, _ = jax.block_until_ready(adapt(keys[chains:], jnp.asarray(u1), jnp.asarray(imm0), args))
     seconds["warmup"] = time.perf_counter() - start
     if progress is not None:
-        progress(settings.warmup)
+        progress(settings.warmup - (settings.warmup // 2 if refit is not None else 0))
     start = time.perf_counter()
     keys = jax.random.split(key_draws, chains * settings.samples).reshape(chains, settings.samples, -1)
     parts = []
@@ -255,7 +270,7 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
             progress(n)
     seconds["sampling"] = time.perf_counter() - start
     arrays = tuple(np.concatenate(a, axis=1) for a in zip(*parts))
-    return arrays, np.asarray(step_size), np.asarray(imm), seconds
+    return arrays, np.asarray(step_size), np.asarray(imm), seconds, args
 
 
 class Ridge(NamedTuple):
@@ -564,25 +579,147 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
     return Whitening(ridges, c, L, z0)
 
 
+CORRECTION_BINS = 5  # slices of the leader's coordinate the warmup's correction is measured in
+CORRECTION_SCALE = 10.0  # its widths are kept within [1/10, 10] of z's
+CORRECTION_MIN_POINTS = 100  # warmup positions it needs (chains × a quarter of the warmup); fewer: no correction
+CORRECTION_AUTOCORRELATION = 4.0  # warmup positions per independent one, for the correction's noise
+
+
+class Correction(NamedTuple):
+    """The warmup's correction of `whitening`'s z (`z_from_v`): along the leader's
+    coordinate z_l, the mean m_j and log width ln s_j of every other z_j, as cubic Hermite
+    interpolants through their values at the knots `x` (m straight beyond the end knots,
+    ln s flat at and beyond them). The leader's own columns are zero."""
+
+    lead: jax.Array  # () int: the leader's index in z
+    x: jax.Array  # (knots,)
+    m: jax.Array  # (knots, k)
+    m_slope: jax.Array
+    log_s: jax.Array
+    log_s_slope: jax.Array
+
+
+def no_correction(k: int, lead: int = 0, knots: int = CORRECTION_BINS) -> Correction:
+    """The identity: z = v."""
+    zero = jnp.zeros((knots, k))
+    return Correction(jnp.asarray(lead), jnp.arange(knots, dtype=float), zero, zero, zero, zero)
+
+
+def _along_leader(correction: Correction, v):
+    """(m, ln s) of `correction` at v's leader coordinate, for v of shape (..., k)."""
+    c = correction
+    curve = jax.vmap(_hermite, in_axes=(None, None, 1, 1), out_axes=-1)
+
+    def one(x):
+        return curve(x, c.x, c.m, c.m_slope), curve(x, c.x, c.log_s, c.log_s_slope)
+
+    return jnp.vectorize(one, signature="()->(k),(k)")(jnp.take(v, c.lead, axis=-1))
+
+
+def z_from_v(correction: Correction, v):
+    """z_j = m_j(v_l) + s_j(v_l)·v_j for every j but the leader l (z_l = v_l), and
+    ln|dz/dv| = Σ_j ln s_j(v_l): a triangular map, one to one since every s_j > 0."""
+    m, log_s = _along_leader(correction, v)
+    return m + jnp.exp(log_s) * v, jnp.sum(log_s, axis=-1)
+
+
+def v_from_z(correction: Correction, z):
+    """`z_from_v` inverted (the leader's coordinate is the same in both)."""
+    m, log_s = _along_leader(correction, z)
+    return (z - m) * jnp.exp(-log_s)
+
+
+def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correction:
+    """The correction measured on warmup positions (n, k) in z: the points sorted by
+    their leader coordinate into `bins` slices of equal counts, each slice's mean of the
+    leader coordinate a knot, its means and SDs of the others the values of m and s
+    there (s kept within `CORRECTION_SCALE` of 1). Where the posterior's ridge departs
+    from the profile's (a corner the shears do not follow, a width that changes along
+    the ridge), z given its leader is off centre or not of unit width; v given its
+    leader is, to the extent the slices see it."""
+    p = np.asarray(positions, float)
+    slices = np.array_split(np.argsort(p[:, lead], kind="stable"), bins)
+    x = np.array([p[i, lead].mean() for i in slices])
+    x = x[0] + np.maximum.accumulate(x - x[0]) + 1e-9 * np.arange(bins)  # strictly increasing
+    def flat_ends(d):
+        d[[0, -1]] = 0.0
+        return d
+
+    # the means, then the widths about the mean curve (not about each slice's mean, which
+    # would count the curve's change across a slice as width)
+    m = np.array([p[i].mean(axis=0) for i in slices])
+    m_slope = _knot_slopes(x, m)
+    curve = np.asarray(_along_leader(Correction(jnp.asarray(lead), jnp.asarray(x), jnp.asarray(m), jnp.asarray(m_slope),
+                                                jnp.zeros_like(m), jnp.zeros_like(m)), jnp.asarray(p))[0])
+    sd = np.sqrt([np.mean((p[i] - curve[i]) ** 2, axis=0) for i in slices])
+    sd = np.clip(sd, 1 / CORRECTION_SCALE, CORRECTION_SCALE)
+    log_s = np.log(sd)
+    # both shrunk towards the identity by what the slices cannot tell from noise
+    # (James–Stein), the warmup's points taken as `CORRECTION_AUTOCORRELATION` times fewer
+    # independent ones
+    n = np.array([len(i) for i in slices])[:, None] / CORRECTION_AUTOCORRELATION
+    m *= np.clip(1.0 - sd**2 / n / np.maximum(m**2, 1e-300), 0.0, 1.0)
+    log_s *= np.clip(1.0 - 0.5 / n / np.maximum(log_s**2, 1e-300), 0.0, 1.0)
+    m[:, lead], log_s[:, lead] = 0.0, 0.0
+    m_slope = _knot_slopes(x, m)
+    return Correction(jnp.asarray(lead), *(jnp.asarray(a) for a in (x, m, m_slope, log_s, flat_ends(_knot_slopes(x, log_s)))))
+
+
 @functools.lru_cache(maxsize=4)
-def whitened_programs(problem: Problem, settings: SamplerSettings):
-    """`nuts_programs` of the posterior in `whitening`'s z, with args = `Whitening.args()`."""
+def whitened_programs(problem: Problem, settings: SamplerSettings, phases: int = 2):
+    """`nuts_programs` of the posterior in the corrected coordinates v (`z_from_v` of
+    `whitening`'s z), with args = (`Whitening.args()`, `Correction`)."""
     log_density = log_density_fn(problem)
-    return nuts_programs(lambda z, args: log_density(u_from_z(problem.free, args, z)), settings)
+
+    def in_v(v, args):
+        white, correction = args
+        z, log_det = z_from_v(correction, v)
+        return log_density(u_from_z(problem.free, white, z)) + log_det
+
+    return nuts_programs(in_v, settings, phases)
+
+
+def u_from_v(problem: Problem, args, v):
+    """u of the sampler's coordinates v, args = (`Whitening.args()`, `Correction`)."""
+    white, correction = args
+    return u_from_z(problem.free, white, z_from_v(correction, v)[0])
+
+
+def sampler_args(white: Whitening) -> tuple:
+    """The args of `whitened_programs` before the warmup's correction: (`white.args()`,
+    `no_correction`)."""
+    return white.args(), no_correction(white.c.size, white.ridges[0].leader)
+
+
+def corrects(settings: SamplerSettings) -> bool:
+    """Whether `sample` corrects its coordinates halfway through the warmup: where that
+    leaves at least `CORRECTION_MIN_POINTS` positions to measure the correction on."""
+    return settings.chains * (settings.warmup // 2 - settings.warmup // 4) >= CORRECTION_MIN_POINTS
+
+
+def correct(path, end, args):
+    """`run_chains`' `refit`: the correction (`fit_correction`) from the second half of
+    the first warmup half's positions in z, and the chains' end points in v."""
+    white, old = args
+    k = path.shape[-1]
+    correction = fit_correction(path[:, path.shape[1] // 2 :].reshape(-1, k), int(old.lead))
+    return (white, correction), np.asarray(v_from_z(correction, jnp.asarray(end)))
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
     """NUTS draws of the posterior in `whitening`'s coordinates around `t_best`, the
-    fit's optimum. `progress(n)` is called after warmup (n = warmup) and after each
-    chunk of draws."""
+    fit's optimum, corrected halfway through the warmup where it is long enough
+    (`corrects`, `correct`). `progress(n)` is called after each warmup half and after
+    each chunk of draws."""
     white = whitening(problem, t_best, jacobian, settings.chains, settings.jitter, settings.seed)
-    args = white.args()
-    (z, lp, div, acc, steps), step_size, imm, seconds = run_chains(whitened_programs(problem, settings), white.z0, np.eye(white.c.size),
-                                                                   settings, args=args, progress=progress)
-    u = np.asarray(u_from_z(problem.free, args, jnp.asarray(z)))
+    halves = corrects(settings)
+    (v, lp, div, acc, steps), step_size, imm, seconds, args = run_chains(
+        whitened_programs(problem, settings, 2 if halves else 1), white.z0, np.eye(white.c.size), settings,
+        args=sampler_args(white), progress=progress, refit=correct if halves else None)
+    u = np.asarray(u_from_v(problem, args, jnp.asarray(v)))
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
     values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
-    return Draws(u, t, values, lp, div, acc, steps, step_size, white.L @ imm @ white.L.T, seconds)
+    return Draws(u, t, values, lp, div, acc, steps, step_size, imm, seconds)
 
 
 def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndarray:
