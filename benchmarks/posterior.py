@@ -61,8 +61,7 @@ def main():
     settings = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples)
     white = post.whitening(problem, best.t, best.jacobian, args.chains)  # the coordinates `calibrate --posterior` samples in
     z0, sampler_args = white.z0, post.sampler_args(white)
-    halves = post.corrects(settings)  # as `calibrate --posterior`: corrected halfway through the warmup
-    programs, refit = post.whitened_programs(problem, settings, 2 if halves else 1), post.correct if halves else None
+    programs, refit = post.whitened_programs(problem, settings), post.warmup_refit(settings)  # as `calibrate --posterior`
     start = time.perf_counter()
     short = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=1)
     post.run_chains(programs, z0, np.eye(k), short, args=sampler_args, chunk=args.samples, refit=refit)  # compiles both programs

@@ -641,10 +641,6 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     slices = np.array_split(np.argsort(p[:, lead], kind="stable"), bins)
     x = np.array([p[i, lead].mean() for i in slices])
     x = x[0] + np.maximum.accumulate(x - x[0]) + 1e-9 * np.arange(bins)  # strictly increasing
-    def flat_ends(d):
-        d[[0, -1]] = 0.0
-        return d
-
     # the means, then the widths about the mean curve (not about each slice's mean, which
     # would count the curve's change across a slice as width)
     m = np.array([p[i].mean(axis=0) for i in slices])
@@ -661,14 +657,16 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     m *= np.clip(1.0 - sd**2 / n / np.maximum(m**2, 1e-300), 0.0, 1.0)
     log_s *= np.clip(1.0 - 0.5 / n / np.maximum(log_s**2, 1e-300), 0.0, 1.0)
     m[:, lead], log_s[:, lead] = 0.0, 0.0
-    m_slope = _knot_slopes(x, m)
-    return Correction(jnp.asarray(lead), *(jnp.asarray(a) for a in (x, m, m_slope, log_s, flat_ends(_knot_slopes(x, log_s)))))
+    log_s_slope = _knot_slopes(x, log_s)
+    log_s_slope[[0, -1]] = 0.0  # flat at the end knots, as beyond them
+    return Correction(jnp.asarray(lead), *(jnp.asarray(a) for a in (x, m, _knot_slopes(x, m), log_s, log_s_slope)))
 
 
 @functools.lru_cache(maxsize=4)
-def whitened_programs(problem: Problem, settings: SamplerSettings, phases: int = 2):
+def whitened_programs(problem: Problem, settings: SamplerSettings):
     """`nuts_programs` of the posterior in the corrected coordinates v (`z_from_v` of
-    `whitening`'s z), with args = (`Whitening.args()`, `Correction`)."""
+    `whitening`'s z), with args = (`Whitening.args()`, `Correction`); their warmup in two
+    halves where `warmup_refit(settings)` corrects between them."""
     log_density = log_density_fn(problem)
 
     def in_v(v, args):
@@ -676,7 +674,7 @@ def whitened_programs(problem: Problem, settings: SamplerSettings, phases: int =
         z, log_det = z_from_v(correction, v)
         return log_density(u_from_z(problem.free, white, z)) + log_det
 
-    return nuts_programs(in_v, settings, phases)
+    return nuts_programs(in_v, settings, 1 if warmup_refit(settings) is None else 2)
 
 
 def u_from_v(problem: Problem, args, v):
@@ -691,10 +689,12 @@ def sampler_args(white: Whitening) -> tuple:
     return white.args(), no_correction(white.c.size, white.ridges[0].leader)
 
 
-def corrects(settings: SamplerSettings) -> bool:
-    """Whether `sample` corrects its coordinates halfway through the warmup: where that
-    leaves at least `CORRECTION_MIN_POINTS` positions to measure the correction on."""
-    return settings.chains * (settings.warmup // 2 - settings.warmup // 4) >= CORRECTION_MIN_POINTS
+def warmup_refit(settings: SamplerSettings):
+    """`run_chains`' `refit` for `whitened_programs`: `correct` where the first warmup
+    half leaves at least `CORRECTION_MIN_POINTS` positions to measure the correction on,
+    else None (the warmup in one piece)."""
+    enough = settings.chains * (settings.warmup // 2 - settings.warmup // 4) >= CORRECTION_MIN_POINTS
+    return correct if enough else None
 
 
 def correct(path, end, args):
@@ -709,13 +709,12 @@ def correct(path, end, args):
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
     """NUTS draws of the posterior in `whitening`'s coordinates around `t_best`, the
     fit's optimum, corrected halfway through the warmup where it is long enough
-    (`corrects`, `correct`). `progress(n)` is called after each warmup half and after
-    each chunk of draws."""
+    (`warmup_refit`). `progress(n)` is called after each warmup half and after each
+    chunk of draws."""
     white = whitening(problem, t_best, jacobian, settings.chains, settings.jitter, settings.seed)
-    halves = corrects(settings)
     (v, lp, div, acc, steps), step_size, imm, seconds, args = run_chains(
-        whitened_programs(problem, settings, 2 if halves else 1), white.z0, np.eye(white.c.size), settings,
-        args=sampler_args(white), progress=progress, refit=correct if halves else None)
+        whitened_programs(problem, settings), white.z0, np.eye(white.c.size), settings, args=sampler_args(white),
+        progress=progress, refit=warmup_refit(settings))
     u = np.asarray(u_from_v(problem, args, jnp.asarray(v)))
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
     values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
