@@ -92,8 +92,9 @@ def test_calibrate_posterior_command_writes_inference_data(static_problem, sampl
     np.testing.assert_allclose(idata.observed_data["y"].values, problem.data()[0][:-1])  # the repeat held out
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["posterior"]) == {"k_m0", "E_m0_kPa_per_ug_g"}
-    for v in summary["posterior"].values():
+    for n, v in summary["posterior"].items():
         assert {"mean", "sd", "q05", "q50", "q95", "r_hat", "ess_bulk"} <= set(v) and v["q05"] <= v["q50"] <= v["q95"]
+        assert v["r_hat"] == pytest.approx(float(az.rhat(idata.posterior)[n]), rel=1e-12)  # unrounded: 1.009 passes < 1.01
     assert summary["posterior"]["k_m0"]["constrained_by"] == "data"  # the data see k_m0 …
     assert summary["posterior"]["E_m0_kPa_per_ug_g"]["constrained_by"] == "prior"  # … not the modulus
     assert {"divergences", "sampling_seconds", "predictive_check"} <= set(summary)

@@ -799,7 +799,7 @@ def posterior_summary(problem: Problem, draws: Draws, idata) -> dict:
     """`summary.json`'s `posterior`, `divergences`, `sampling_seconds` and friends."""
     az = import_arviz()
 
-    stats = az.summary(idata, var_names=list(problem.names), kind="diagnostics")
+    stats = az.summary(idata, var_names=list(problem.names), kind="diagnostics", round_to="none")  # R-hat < 1.01 needs 3 digits
     shrink = contraction(problem, draws)
     out = {}
     for i, n in enumerate(problem.names):
