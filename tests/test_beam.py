@@ -128,6 +128,21 @@ def test_cycle_gradient_stores_carries_not_step_intermediates():
     assert analysis.temp_size_in_bytes < 100 * beam.material.E.nbytes
 
 
+def test_batched_cycles_call_no_lapack_kernel():
+    """A batch of cycles (as posterior draws or sweeps run them) compiles to XLA's own
+    operations: the Newton solve marches (`_volterra_solve`), with no LAPACK custom call,
+    whose batched CPU kernels can deadlock when XLA runs two of them at once."""
+    import re
+
+    beam = uniform_beam(n_segments=20, ny=12, steps=16)
+
+    def force(scale):
+        return loading_cycle(eqx.tree_at(lambda b: b.material.E, beam, beam.material.E * scale), 1.0, 5e-3, 0.05).post_force_max_N
+
+    text = jax.jit(jax.vmap(jax.value_and_grad(force))).lower(jnp.array([1.0, 1.5])).compile().as_text()
+    assert not [t for t in re.findall(r'custom_call_target="([^"]+)"', text) if "lapack" in t]
+
+
 def test_cycle_time_stepping_converges_at_first_order():
     values = []
     for steps in (50, 100, 200, 400):
