@@ -524,8 +524,9 @@ def test_chains_split_over_devices_give_the_same_draws(tmp_path):
 
 
 def test_risk_measures_and_chance_constraints():
-    """The quantile risk takes the unfavourable tail; a ceiling met by its p-quantile
-    holds for at least a fraction p of the draws (and a floor by its (1 − p)-quantile)."""
+    """The quantile risk takes the unfavourable tail; a chance constraint judges a
+    ceiling by its ⌈p·n⌉-th smallest draw (a floor by its ⌈p·n⌉-th largest), which holds
+    for at least a fraction p of the draws."""
     from jaxtissue.studies.robust import Uncertainty
 
     rng = np.random.default_rng(0)
@@ -533,9 +534,13 @@ def test_risk_measures_and_chance_constraints():
     u = Uncertainty("p", ("k_m0",), np.zeros((1, 1)), risk="quantile", quantile=0.05, constraint_probability=0.9)
     assert float(u.objective(jnp.asarray(J), +1)) == pytest.approx(np.quantile(J, 0.05))
     assert float(u.objective(jnp.asarray(J), -1)) == pytest.approx(np.quantile(J, 0.95))
-    values = rng.lognormal(size=(200, 2))
-    ceiling, floor = np.asarray(u.limit_values(jnp.asarray(values), ["ceiling", "floor"]))
-    assert np.mean(values[:, 0] <= ceiling) >= 0.9 and np.mean(values[:, 1] >= floor) >= 0.9
+    for n, p in ((200, 0.9), (16, 0.95), (7, 0.5), (40, 0.975)):  # at 16 draws the 0.95-quantile holds for 15 only
+        values = rng.lognormal(size=(n, 2))
+        c = dataclasses.replace(u, constraint_probability=p)
+        ceiling, floor = np.asarray(c.limit_values(jnp.asarray(values), ["ceiling", "floor"]))
+        k = int(np.ceil(p * n))  # the fewest draws that make a fraction p
+        assert ceiling == pytest.approx(np.sort(values[:, 0])[k - 1]) and floor == pytest.approx(np.sort(values[:, 1])[n - k])
+        assert np.mean(values[:, 0] <= ceiling) >= p and np.mean(values[:, 1] >= floor) >= p
     mean = Uncertainty("p", ("k_m0",), np.zeros((1, 1)))
     np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), ["ceiling", "floor"])), values.mean(axis=0))
 

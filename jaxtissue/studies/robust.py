@@ -9,9 +9,11 @@ under `vmap` and differentiated as before:
   `quantile` in the unfavourable tail (for a maximised objective the `quantile`-quantile,
   e.g. 0.05: the collagen that 95 % of plausible tissues reach; for a minimised one the
   (1 − `quantile`)-quantile);
-* `constraint_probability = p`: chance constraints. A limit holds for a fraction p of
-  the draws exactly when the p-quantile of a ceiling's value (the (1 − p)-quantile of a
-  floor's) meets it, so that quantile takes the value's place in the limits.
+* `constraint_probability = p`: chance constraints. A ceiling holds for at least a
+  fraction p of n draws exactly when its value's k-th smallest draw, k = ⌈p·n⌉, meets it
+  (a floor: the k-th largest), so that order statistic takes the value's place in the
+  limits (not the interpolated p-quantile, which lies below it and lets the limit
+  break for more draws).
 
 The optimum's objective and constraint probability are then checked on a fresh set
 of draws, beside those of the point-estimate optimum (the same problem without
@@ -64,12 +66,14 @@ class Uncertainty:
 
     def limit_values(self, values, kinds):
         """Per-draw constraint values (draws, constraints) -> the value each limit is
-        judged on: the mean, or with chance constraints the quantile that holds for a
-        fraction `constraint_probability` of the draws."""
+        judged on: the mean, or with chance constraints the order statistic that holds
+        for at least a fraction `constraint_probability` of the draws."""
         if self.constraint_probability is None:
             return jnp.mean(values, axis=0)
-        p = self.constraint_probability
-        qs = [jnp.quantile(values[:, k], p if kind == "ceiling" else 1.0 - p) for k, kind in enumerate(kinds)]
+        n = values.shape[0]
+        k = math.ceil(self.constraint_probability * n - 1e-9)  # the fewest draws that make a fraction p
+        ordered = jnp.sort(values, axis=0)
+        qs = [ordered[k - 1 if kind == "ceiling" else n - k, j] for j, kind in enumerate(kinds)]
         return jnp.stack(qs) if qs else jnp.zeros(0)
 
 
