@@ -524,24 +524,42 @@ def test_chains_split_over_devices_give_the_same_draws(tmp_path):
 
 
 def test_risk_measures_and_chance_constraints():
-    """The quantile risk takes the unfavourable tail; a chance constraint judges a
-    ceiling by its ⌈p·n⌉-th smallest draw (a floor by its ⌈p·n⌉-th largest), which holds
-    for at least a fraction p of the draws."""
-    from jaxtissue.studies.robust import Uncertainty
+    """The quantile risk takes the unfavourable tail; a chance constraint holds all limits
+    together: where the judged values meet them, at least k = ⌈p·(n + 1)⌉ draws meet
+    every limit, and where they break one, fewer than k do (counted draw by draw)."""
+    from jaxtissue.studies.robust import Uncertainty, chance_rank, fewest_draws
 
     rng = np.random.default_rng(0)
     J = rng.normal(size=200)
     u = Uncertainty("p", ("k_m0",), np.zeros((1, 1)), risk="quantile", quantile=0.05, constraint_probability=0.9)
     assert float(u.objective(jnp.asarray(J), +1)) == pytest.approx(np.quantile(J, 0.05))
     assert float(u.objective(jnp.asarray(J), -1)) == pytest.approx(np.quantile(J, 0.95))
-    for n, p in ((200, 0.9), (16, 0.95), (7, 0.5), (40, 0.975)):  # at 16 draws the 0.95-quantile holds for 15 only
-        values = rng.lognormal(size=(n, 2))
+    assert [fewest_draws(p) for p in (0.5, 0.9, 0.95, 0.975)] == [1, 9, 19, 39]
+    assert chance_rank(0.95, 19) == 19 and chance_rank(0.95, 40) == 39 and chance_rank(0.95, 16) == 16
+    kinds = ["ceiling", "floor"]
+    verdicts = set()
+    for n, p in ((200, 0.9), (19, 0.95), (7, 0.5), (40, 0.975), (60, 0.9)):
         c = dataclasses.replace(u, constraint_probability=p)
-        ceiling, floor = np.asarray(c.limit_values(jnp.asarray(values), ["ceiling", "floor"]))
-        k = int(np.ceil(p * n))  # the fewest draws that make a fraction p
-        assert ceiling == pytest.approx(np.sort(values[:, 0])[k - 1]) and floor == pytest.approx(np.sort(values[:, 1])[n - k])
-        assert np.mean(values[:, 0] <= ceiling) >= p and np.mean(values[:, 1] >= floor) >= p
+        k = chance_rank(p, n)
+        assert k / (n + 1) >= p - 1e-12
+        for trial in range(20):
+            values = rng.lognormal(size=(n, 2))
+            limits = np.quantile(values, [rng.uniform(0.7, 1.0), rng.uniform(0.0, 0.3)], axis=0).diagonal()
+            judged = np.asarray(c.limit_values(jnp.asarray(values), kinds, limits))
+            meets = judged[0] <= limits[0] and judged[1] >= limits[1]
+            every = np.sum((values[:, 0] <= limits[0]) & (values[:, 1] >= limits[1]))  # draws meeting both
+            assert meets == (every >= k), (n, p, trial, every, k)
+            assert any(np.array_equal(judged, row) for row in values)  # one draw's values
+            verdicts.add(meets)
+    assert verdicts == {True, False}  # both outcomes were exercised
+    # with one limit the judged value is the k-th smallest (ceiling) or largest (floor)
+    values = rng.lognormal(size=(40, 1))
+    c = dataclasses.replace(u, constraint_probability=0.9)
+    k = chance_rank(0.9, 40)
+    assert float(c.limit_values(jnp.asarray(values), ["ceiling"], [1.0])[0]) == np.sort(values[:, 0])[k - 1]
+    assert float(c.limit_values(jnp.asarray(values), ["floor"], [1.0])[0]) == np.sort(values[:, 0])[40 - k]
+    values = rng.lognormal(size=(40, 2))
     mean = Uncertainty("p", ("k_m0",), np.zeros((1, 1)))
-    np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), ["ceiling", "floor"])), values.mean(axis=0))
+    np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), kinds, [1.0, 1.0])), values.mean(axis=0))
 
 

@@ -207,6 +207,7 @@ grid_points = 3
     ("constraint_probability = 0", "constraint_probability = 0 must be a number in (0, 1)"),
     ('risk = "worst"', "risk = 'worst'; allowed: 'mean', 'quantile'"),
     ("draws = 70\ncheck_draws = 20", "draws + check_draws = 90 exceeds the posterior's 80 draws"),
+    ("constraint_probability = 0.95\ndraws = 16", "draws = 16 is too few for constraint_probability = 0.95"),
 ])
 def test_bad_uncertainty_tables_exit_2(sampled, capsys, extra, message):
     from jaxtissue.cli import main
@@ -232,14 +233,14 @@ def test_uncertainty_needs_a_posterior_there(sampled, capsys):
 
 @pytest.mark.slow
 def test_robust_design_meets_its_declared_probability_on_fresh_draws(sampled):
-    """A chance-constrained design over 8 posterior draws, checked on 40 fresh ones
+    """A chance-constrained design over 9 posterior draws, checked on 40 fresh ones
     beside the point-estimate optimum."""
     from jaxtissue.cli import main
 
     folder, _ = sampled
     problem = folder.parent / "robust.toml"
     problem.write_text(ROBUST.format(posterior=folder.name, extra='risk = "quantile"\nquantile = 0.1\n'
-                                                                     "constraint_probability = 0.9\ndraws = 8\ncheck_draws = 40"))
+                                                                     "constraint_probability = 0.9\ndraws = 9\ncheck_draws = 40"))
     out = folder.parent / "robust_out"
     assert main(["optimize", str(problem), "--out", str(out), "--no-progress"]) == 0
     r = json.loads((out / "summary.json").read_text())["robust"]

@@ -42,7 +42,7 @@ from ..protocol import LUMPING_RULES, THREE_WEEKS_S, Protocol, interval_bounds
 from ..simulate import simulate
 from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 from .objectives import CONSTRAINTS, OBJECTIVES, conditioning_dose
-from .robust import Uncertainty, check, read_uncertainty
+from .robust import Uncertainty, chance_rank, check, read_uncertainty
 
 VARIABLES = ("period_s", "post_displacement_mm")
 DEFAULT_BOUNDS = {"period_s": (0.25, 10.0), "post_displacement_mm": (0.0, 10.0)}
@@ -179,7 +179,8 @@ class Design:
             return self.evaluate_with(theta, self.params, autodiff)
         J, values, failed = self.evaluate_draws(theta, u.split()[0], autodiff)
         kinds = [CONSTRAINTS[n].kind for n in self.constraints]
-        return u.objective(J, OBJECTIVES[self.objective].sense), u.limit_values(values, kinds), jnp.any(failed)
+        limits = list(self.constraints.values())
+        return u.objective(J, OBJECTIVES[self.objective].sense), u.limit_values(values, kinds, limits), jnp.any(failed)
 
     def violation(self, values, margin=0.0):
         """g (relative; ≤ 0 where met) of constraint values, limits tightened by `margin`."""
@@ -544,7 +545,8 @@ def _robust_lines(r: dict, d: Design) -> list[str]:
     p = r["declared_constraint_probability"]
     out = ["", "## Under uncertainty", "",
            f"Posterior `{r['posterior']}`: the objective is its {measure} over {r['optimisation_draws']} posterior draws"
-           + (f", and each limit must hold for {100 * p:g} % of them" if p is not None else ", the limits on the draws' mean values") + ". "
+           + (f", and all limits must hold together for {chance_rank(p, r['optimisation_draws'])} of them, so that they hold for a "
+              f"fresh draw with probability at least {100 * p:g} %" if p is not None else ", the limits on the draws' mean values") + ". "
            f"Both optima, checked on {u.check_draws} fresh draws:", "",
            "| optimum | protocol | objective (risk measure) | objective (mean) | limits met in | failed |", "|---|---|---|---|---|---|"]
     for key, label in (("robust_optimum", "robust"), ("point_estimate_optimum", "point estimate")):

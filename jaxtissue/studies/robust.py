@@ -9,11 +9,12 @@ under `vmap` and differentiated as before:
   `quantile` in the unfavourable tail (for a maximised objective the `quantile`-quantile,
   e.g. 0.05: the collagen that 95 % of plausible tissues reach; for a minimised one the
   (1 − `quantile`)-quantile);
-* `constraint_probability = p`: chance constraints. A ceiling holds for at least a
-  fraction p of n draws exactly when its value's k-th smallest draw, k = ⌈p·n⌉, meets it
-  (a floor: the k-th largest), so that order statistic takes the value's place in the
-  limits (not the interpolated p-quantile, which lies below it and lets the limit
-  break for more draws).
+* `constraint_probability = p`: chance constraints, all limits together. Each draw's
+  worst limit is its largest relative violation; the draws are ranked by it, and the
+  limits are judged on the values of the k-th best draw, k = ⌈p·(n + 1)⌉ of n. Where
+  that draw meets every limit, so do at least k draws, and a fresh draw, exchangeable
+  with them, meets every limit with probability at least k/(n + 1) ≥ p. That needs
+  n ≥ p/(1 − p) draws (19 for p = 0.95); fewer are refused.
 
 The optimum's objective and constraint probability are then checked on a fresh set
 of draws, beside those of the point-estimate optimum (the same problem without
@@ -46,7 +47,7 @@ class Uncertainty:
     risk: str = "mean"
     quantile: float = 0.05
     constraint_probability: float | None = None
-    draws: int = 16  # posterior draws the optimisation averages over
+    draws: int = 20  # posterior draws the optimisation averages over
     check_draws: int = 64  # fresh draws of the check
     seed: int = 0
 
@@ -64,17 +65,31 @@ class Uncertainty:
         q = self.quantile if sense > 0 else 1.0 - self.quantile
         return jnp.quantile(J, q, axis=-1)
 
-    def limit_values(self, values, kinds):
-        """Per-draw constraint values (draws, constraints) -> the value each limit is
-        judged on: the mean, or with chance constraints the order statistic that holds
-        for at least a fraction `constraint_probability` of the draws."""
+    def limit_values(self, values, kinds, limits):
+        """Per-draw constraint values (draws, constraints) -> the values the limits are
+        judged on: their means, or with chance constraints those of the draw ranked k-th
+        by its largest relative violation (module docstring)."""
         if self.constraint_probability is None:
             return jnp.mean(values, axis=0)
+        if values.shape[1] == 0:
+            return jnp.zeros(0)
         n = values.shape[0]
-        k = math.ceil(self.constraint_probability * n - 1e-9)  # the fewest draws that make a fraction p
-        ordered = jnp.sort(values, axis=0)
-        qs = [ordered[k - 1 if kind == "ceiling" else n - k, j] for j, kind in enumerate(kinds)]
-        return jnp.stack(qs) if qs else jnp.zeros(0)
+        k = chance_rank(self.constraint_probability, n)
+        limits = jnp.asarray(limits, float)
+        ceiling = jnp.asarray([kind == "ceiling" for kind in kinds])
+        worst = jnp.max(jnp.where(ceiling, values / limits - 1.0, 1.0 - values / limits), axis=1)
+        return values[jnp.argsort(worst)[k - 1]]
+
+
+def chance_rank(p: float, n: int) -> int:
+    """k = ⌈p·(n + 1)⌉: the draws of n that must meet the limits for a fresh draw to meet
+    them with probability ≥ p (at most n, reached from n ≥ p/(1 − p))."""
+    return min(n, math.ceil(p * (n + 1) - 1e-9))
+
+
+def fewest_draws(p: float) -> int:
+    """The fewest draws for which `chance_rank` ≤ n: ⌈p/(1 − p)⌉."""
+    return math.ceil(p / (1.0 - p) - 1e-9)
 
 
 def read_uncertainty(spec, where: str, base: pathlib.Path) -> Uncertainty:
@@ -104,11 +119,16 @@ def read_uncertainty(spec, where: str, base: pathlib.Path) -> Uncertainty:
     probability = spec.get("constraint_probability")
     probability = None if probability is None else _fraction(probability, where, "constraint_probability")
     counts = {}
-    for k, default in (("draws", 16), ("check_draws", 64), ("seed", 0)):
+    fewest = 1 if probability is None else fewest_draws(probability)
+    for k, default in (("draws", max(20, fewest)), ("check_draws", 64), ("seed", 0)):
         v = spec.get(k, default)
         if isinstance(v, bool) or not isinstance(v, int) or v < (0 if k == "seed" else 1):
             raise InputError(f"{where}: [uncertainty] {k} = {v!r} must be {'an integer >= 0' if k == 'seed' else 'a positive integer'}")
         counts[k] = v
+    if counts["draws"] < fewest:
+        raise InputError(f"{where}: [uncertainty] draws = {counts['draws']} is too few for constraint_probability = "
+                         f"{probability:g}: a fresh draw keeps the limits with that probability only from draws >= "
+                         f"{fewest}")
     values = saved.values.reshape(-1, len(saved.names))
     if counts["draws"] + counts["check_draws"] > len(values):
         raise InputError(f"{where}: [uncertainty] draws + check_draws = {counts['draws'] + counts['check_draws']} exceeds the "
