@@ -22,16 +22,12 @@ import argparse
 import pathlib
 import time
 
-from jaxtissue.studies import sweep
+import jax
+import jax.numpy as jnp
+import numpy as np
 
-sweep.use_all_cores()  # before JAX starts: NUTS's chains over the cores
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from jaxtissue.studies import calibration as cal  # noqa: E402
-from jaxtissue.studies import posterior as post  # noqa: E402
+from jaxtissue.studies import calibration as cal
+from jaxtissue.studies import posterior as post
 
 jax.config.update("jax_enable_x64", True)
 
@@ -51,6 +47,7 @@ def main():
     problem = cal.read_problem(args.problem, {"starts": 1})
     if args.hold_out:
         problem, _ = post.hold_out(problem, args.hold_out)
+    post.split_cpu(problem, args.chains)  # the CPU's devices as the command line makes them, before JAX starts
     k = len(problem.free)
     held = f" ({args.hold_out} held out)" if args.hold_out else ""
     print(f"{problem.name}{held}: {k} free parameters, {len(problem.observations)} observations; {len(jax.devices())} CPU devices")

@@ -152,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--posterior", action="store_true", help="then sample the posterior with NUTS: posterior.nc, pairs.png, traces.png")
     k.add_argument("--chains", type=_grid_size, default=4, metavar="N", help="with --posterior: chains, batched (default 4)")
     k.add_argument("--warmup", type=_grid_size, default=200, metavar="N", help="with --posterior: warmup draws per chain (default 200)")
-    k.add_argument("--samples", type=_grid_size, default=250, metavar="N", help="with --posterior: kept draws per chain (default 250)")
+    k.add_argument("--samples", type=_grid_size, default=300, metavar="N", help="with --posterior: kept draws per chain (default 300)")
     k.add_argument("--seed", type=int, default=0, metavar="S", help="with --posterior: random seed (default 0)")
     k.add_argument("--hold-out", metavar="CONDITION", help="with --posterior: calibrate without that condition's data, then predict them")
     _output_arguments(k, required=False)
@@ -496,10 +496,8 @@ def cmd_reproduce(args) -> int:
 
 def cmd_calibrate(args) -> int:
     from . import io
-    from .studies import calibration, sweep
+    from .studies import calibration
 
-    if args.posterior:
-        sweep.use_all_cores()  # chains split over the cores; before anything starts JAX's backend
     overrides = {} if args.starts is None else {"starts": args.starts}
     if args.export_petab is not None:
         return _export_petab(args, overrides)
@@ -525,6 +523,10 @@ def cmd_calibrate(args) -> int:
         if not args.posterior:
             raise InputError("--hold-out needs --posterior (the held-out data are predicted from the posterior)")
         problem, held_out = posterior.hold_out(problem, args.hold_out)
+    if args.posterior:
+        from .studies import posterior
+
+        posterior.split_cpu(problem, args.chains)  # before anything starts JAX's backends
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     cal = calibration.calibrate(problem, with_profiles=not args.no_profiles, progress=progress)

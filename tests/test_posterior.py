@@ -484,7 +484,10 @@ def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
 
 
 _CHAINS_OVER_DEVICES = """
-import sys, numpy as np, jax, jax.numpy as jnp
+import sys
+from jaxtissue.studies import sweep
+assert sweep.use_cpu_devices(4)  # as `jaxtissue calibrate --posterior` does for 4 chains of a coupled density
+import numpy as np, jax, jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 from jaxtissue.studies import posterior as post
 from test_posterior import _linear_gaussian, _split_chains_settings
@@ -501,23 +504,24 @@ def _split_chains_settings():
 
 
 def test_chains_split_over_devices_give_the_same_draws(tmp_path):
-    """Four chains over two CPU devices (a process of its own: the device count is
-    fixed at start-up) draw what they draw on one device."""
+    """Four chains over four CPU devices, one a chain as the command line makes them for
+    a coupled density (a process of its own: the device count is fixed at start-up),
+    draw what they draw on one device."""
     import os
     import pathlib
     import subprocess
     import sys
 
     here = pathlib.Path(__file__).resolve().parent
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", PYTHONPATH=str(here))
+    env = {**{k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, "PYTHONPATH": str(here)}
     out = subprocess.run([sys.executable, "-c", _CHAINS_OVER_DEVICES, str(tmp_path / "u.npy")], env=env, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip().splitlines()[-1] == "2"
+    assert out.stdout.strip().splitlines()[-1] == "4"
     s = _split_chains_settings()
     (u, *_), *_ = post.run_chains(post.nuts_programs(_linear_gaussian, s), np.arange(8.0).reshape(4, 2), np.eye(2), s,
                                   args=jnp.asarray([0.7, -0.2, 1.1]))
-    np.testing.assert_allclose(np.load(tmp_path / "u.npy"), u, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.load(tmp_path / "u.npy"), u, rtol=1e-7, atol=1e-9)  # batches of 1 round differently
 
 
 # ---- protocol design under uncertainty
@@ -563,3 +567,19 @@ def test_risk_measures_and_chance_constraints():
     np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), kinds, [1.0, 1.0])), values.mean(axis=0))
 
 
+
+
+def test_the_cpu_is_split_a_device_per_chain_for_coupled_densities(monkeypatch):
+    """`split_cpu`: a device per chain where a log density is a coupled flex run, a
+    device per core (at most one a chain) where every condition is static."""
+    import os
+    import pathlib
+
+    from jaxtissue.studies import calibration, sweep
+
+    asked = []
+    monkeypatch.setattr(sweep, "use_cpu_devices", lambda n: asked.append(n) or True)
+    full = calibration.read_problem(pathlib.Path(__file__).parents[1] / "calibrate" / "engelmayr2005.toml")
+    static, _ = post.hold_out(full, "flex")
+    assert post.split_cpu(full, 4) and post.split_cpu(static, 4) and post.split_cpu(static, 1)
+    assert asked == [4, min(4, os.cpu_count()), 1]

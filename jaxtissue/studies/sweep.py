@@ -190,15 +190,19 @@ def read_sweep(path) -> Sweep:
 
 
 def use_all_cores() -> bool:
-    """Give JAX one CPU device per core (`--xla_force_host_platform_device_count`), so
-    that a sweep's batch is sharded over every core of a CPU-only machine. Works only
-    before JAX starts its backends and leaves an explicit device count in `XLA_FLAGS`
-    alone (`cache.add_xla_flag`); accelerators are unaffected. Returns whether the setting
-    was made."""
+    """Give JAX one CPU device per core (`use_cpu_devices`), so that a sweep's batch is
+    sharded over every core of a CPU-only machine."""
     import os
 
-    cores = os.cpu_count() or 1
-    return cores >= 2 and add_xla_flag(f"--xla_force_host_platform_device_count={cores}")
+    return use_cpu_devices(os.cpu_count() or 1)
+
+
+def use_cpu_devices(n: int) -> bool:
+    """Split the CPU into `n` JAX devices (`--xla_force_host_platform_device_count`).
+    Works only before JAX starts its backends and leaves an explicit device count in
+    `XLA_FLAGS` alone (`cache.add_xla_flag`); accelerators are unaffected. Returns
+    whether the setting was made."""
+    return n >= 2 and add_xla_flag(f"--xla_force_host_platform_device_count={n}")
 
 
 def join_processes(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
