@@ -629,8 +629,9 @@ def cmd_predict(args) -> int:
 
 def cmd_optimize(args) -> int:
     from . import io
-    from .studies import optimization
+    from .studies import optimization, sweep
 
+    sweep.use_all_cores()  # starts and grid batches split over the cores; before anything starts JAX's backends
     overrides = {k: v for k, v in (("starts", args.starts), ("steps", args.steps), ("grid_points", args.grid_points)) if v is not None}
     design = optimization.read_design(args.problem, overrides)
     io.check_output_folder(args.out, args.overwrite)

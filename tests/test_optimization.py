@@ -223,3 +223,38 @@ def test_unreachable_limit_is_an_error_naming_it(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "EI_min_N_m2 <=" in err and "(limit 1e-05)" in err and "relax a limit" in err
     assert not (tmp_path / "o").exists()
+
+
+_OVER_DEVICES = """
+from jaxtissue.studies import sweep
+assert sweep.use_all_cores()  # as `jaxtissue optimize` does
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from jaxtissue.studies.optimization import _over_devices
+def step(z, state, lam):  # a start's step: arrays and a pytree in, a pytree out
+    return z * state["m"] + lam.sum(), {"m": state["m"] + 1.0, "n": state["n"] * 2}, (jnp.sin(z).sum(), lam)
+n = 2 * len(jax.devices())
+z, lam = jnp.arange(n * 3.0).reshape(n, 3), jnp.ones((n, 2))
+state = {"m": jnp.linspace(0, 1, n)[:, None] * jnp.ones((n, 3)), "n": jnp.arange(n)}
+plain = jax.jit(jax.vmap(step))(z, state, lam)
+split = jax.jit(_over_devices(jax.vmap(step), n))(z, state, lam)
+assert len(jax.devices()) > 1 and len(split[0].sharding.device_set) == len(jax.devices())
+for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(split)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+print("ok", len(jax.devices()))
+"""
+
+
+def test_batches_split_over_the_cores_compute_the_same():
+    """`_over_devices` (the starts and grid batches of `jaxtissue optimize`, over one CPU
+    device per core, in a process of its own) gives what one device gives."""
+    import os
+    import subprocess
+    import sys
+
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: nothing to split")
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    out = subprocess.run([sys.executable, "-c", _OVER_DEVICES], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[0] == "ok"

@@ -239,6 +239,19 @@ class GridResult(NamedTuple):
     compile_seconds: float
 
 
+def _over_devices(batched, n: int):
+    """`batched` (vmapped: every argument and result has a leading batch axis of n)
+    sharded over the devices where they divide n, e.g. one per CPU core
+    (`sweep.use_all_cores`, as the command line does); else as it is."""
+    devices = jax.devices()
+    if len(devices) < 2 or n % len(devices):
+        return batched
+    from jax.sharding import Mesh, PartitionSpec
+
+    spec = PartitionSpec("batch")
+    return jax.shard_map(batched, mesh=Mesh(np.array(devices), ("batch",)), in_specs=spec, out_specs=spec, check_vma=False)
+
+
 def _compile(fn, *args):
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
@@ -257,7 +270,7 @@ def grid_search(design: Design, progress=None) -> GridResult:
     thetas = np.stack([np.broadcast_to(P.ravel()[:, None], (n * n, design.stages)),
                        np.broadcast_to(U.ravel()[:, None], (n * n, design.stages))], axis=-1)
     chunk = min(s.grid_chunk, n * n)
-    batch, compile_s = _compile(jax.vmap(design.evaluate), jnp.zeros((chunk, design.stages, 2)))
+    batch, compile_s = _compile(_over_devices(jax.vmap(design.evaluate), chunk), jnp.zeros((chunk, design.stages, 2)))
     t0 = time.perf_counter()
     J, V, F = [], [], []
     for b in range(0, n * n, chunk):
@@ -327,7 +340,7 @@ def optimize(design: Design, starts: np.ndarray, scale: float, progress=None) ->
     z = jnp.asarray(design.z_from_theta(jnp.asarray(starts)))
     state = jax.vmap(opt.init)(z)
     lam = jnp.zeros((len(starts), n_con))
-    batched, compile_s = _compile(jax.vmap(step), z, state, lam)
+    batched, compile_s = _compile(_over_devices(jax.vmap(step), len(starts)), z, state, lam)
     path, J, V, F, stamps = [], [], [], [], []
     t0 = time.perf_counter()
     for k in range(s.steps + 1):
