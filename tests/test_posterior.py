@@ -464,9 +464,8 @@ def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
     draws, and a's mean and SD right."""
     settings = post.SamplerSettings(chains=4, warmup=200, samples=250)
 
-    def refit(path, end, correction):
-        c = post.fit_correction(path[:, path.shape[1] // 2 :].reshape(-1, 2), 0)
-        return c, np.asarray(post.v_from_z(c, jnp.asarray(end)))
+    def refit(path, end, correction):  # `posterior.correct` without the whitening
+        return post.refit_correction(path, end, int(correction.lead))
 
     az = post.import_arviz()
     start = np.random.default_rng(0).normal(size=(4, 2)) * [1.0, 0.1]

@@ -716,12 +716,18 @@ def warmup_refit(settings: SamplerSettings):
 
 
 def correct(path, end, args):
-    """`run_chains`' `refit`: the correction (`fit_correction`) from the second half of
-    the first warmup half's positions in z, and the chains' end points in v."""
+    """`run_chains`' `refit` for args = (`Whitening.args()`, `Correction`): `refit_correction`."""
     white, old = args
+    correction, v = refit_correction(path, end, int(old.lead))
+    return (white, correction), v
+
+
+def refit_correction(path, end, lead: int):
+    """The correction (`fit_correction`, leader `lead`) from the second half of the first
+    warmup half's positions `path` (chains, steps, k) in z, and the chains' end points in v."""
     k = path.shape[-1]
-    correction = fit_correction(path[:, path.shape[1] // 2 :].reshape(-1, k), int(old.lead))
-    return (white, correction), np.asarray(v_from_z(correction, jnp.asarray(end)))
+    correction = fit_correction(path[:, path.shape[1] // 2 :].reshape(-1, k), lead)
+    return correction, np.asarray(v_from_z(correction, jnp.asarray(end)))
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
