@@ -230,14 +230,14 @@ from jaxtissue.studies import sweep
 assert sweep.use_all_cores()  # as `jaxtissue optimize` does
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
-from jaxtissue.studies.optimization import _over_devices
+from jaxtissue.studies.sweep import vmap_over_devices
 def step(z, state, lam):  # a start's step: arrays and a pytree in, a pytree out
     return z * state["m"] + lam.sum(), {"m": state["m"] + 1.0, "n": state["n"] * 2}, (jnp.sin(z).sum(), lam)
 n = 2 * len(jax.devices())
 z, lam = jnp.arange(n * 3.0).reshape(n, 3), jnp.ones((n, 2))
 state = {"m": jnp.linspace(0, 1, n)[:, None] * jnp.ones((n, 3)), "n": jnp.arange(n)}
 plain = jax.jit(jax.vmap(step))(z, state, lam)
-split = jax.jit(_over_devices(jax.vmap(step), n))(z, state, lam)
+split = jax.jit(vmap_over_devices(step, n))(z, state, lam)
 assert len(jax.devices()) > 1 and len(split[0].sharding.device_set) == len(jax.devices())
 for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(split)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -246,8 +246,8 @@ print("ok", len(jax.devices()))
 
 
 def test_batches_split_over_the_cores_compute_the_same():
-    """`_over_devices` (the starts and grid batches of `jaxtissue optimize`, over one CPU
-    device per core, in a process of its own) gives what one device gives."""
+    """`sweep.vmap_over_devices` (the starts and grid batches of `jaxtissue optimize`, over
+    one CPU device per core, in a process of its own) gives what one device gives."""
     import os
     import subprocess
     import sys

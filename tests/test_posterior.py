@@ -526,6 +526,12 @@ def test_chains_split_over_devices_give_the_same_draws(tmp_path):
 # ---- protocol design under uncertainty
 
 
+def _violation(kinds, limits):
+    """Per-draw relative violations (≤ 0 where met) of ceilings and floors at `limits`."""
+    return lambda v: jnp.stack([v[:, j] / L - 1.0 if kind == "ceiling" else 1.0 - v[:, j] / L
+                                for j, (kind, L) in enumerate(zip(kinds, limits))], axis=1)
+
+
 def test_risk_measures_and_chance_constraints():
     """The quantile risk takes the unfavourable tail; a chance constraint holds all limits
     together: where the judged values meet them, at least k = ⌈p·(n + 1)⌉ draws meet
@@ -548,7 +554,7 @@ def test_risk_measures_and_chance_constraints():
         for trial in range(20):
             values = rng.lognormal(size=(n, 2))
             limits = np.quantile(values, [rng.uniform(0.7, 1.0), rng.uniform(0.0, 0.3)], axis=0).diagonal()
-            judged = np.asarray(c.limit_values(jnp.asarray(values), kinds, limits))
+            judged = np.asarray(c.limit_values(jnp.asarray(values), _violation(kinds, limits)))
             meets = judged[0] <= limits[0] and judged[1] >= limits[1]
             every = np.sum((values[:, 0] <= limits[0]) & (values[:, 1] >= limits[1]))  # draws meeting both
             assert meets == (every >= k), (n, p, trial, every, k)
@@ -559,11 +565,11 @@ def test_risk_measures_and_chance_constraints():
     values = rng.lognormal(size=(40, 1))
     c = dataclasses.replace(u, constraint_probability=0.9)
     k = chance_rank(0.9, 40)
-    assert float(c.limit_values(jnp.asarray(values), ["ceiling"], [1.0])[0]) == np.sort(values[:, 0])[k - 1]
-    assert float(c.limit_values(jnp.asarray(values), ["floor"], [1.0])[0]) == np.sort(values[:, 0])[40 - k]
+    assert float(c.limit_values(jnp.asarray(values), _violation(["ceiling"], [1.0]))[0]) == np.sort(values[:, 0])[k - 1]
+    assert float(c.limit_values(jnp.asarray(values), _violation(["floor"], [1.0]))[0]) == np.sort(values[:, 0])[40 - k]
     values = rng.lognormal(size=(40, 2))
     mean = Uncertainty("p", ("k_m0",), np.zeros((1, 1)))
-    np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), kinds, [1.0, 1.0])), values.mean(axis=0))
+    np.testing.assert_allclose(np.asarray(mean.limit_values(jnp.asarray(values), _violation(kinds, [1.0, 1.0]))), values.mean(axis=0))
 
 
 
@@ -574,10 +580,10 @@ def test_the_cpu_is_split_a_device_per_chain_for_coupled_densities(monkeypatch):
     import os
     import pathlib
 
-    from jaxtissue.studies import calibration, sweep
+    from jaxtissue.studies import calibration
 
     asked = []
-    monkeypatch.setattr(sweep, "use_cpu_devices", lambda n: asked.append(n) or True)
+    monkeypatch.setattr(post, "use_cpu_devices", lambda n: asked.append(n) or True)
     full = calibration.read_problem(pathlib.Path(__file__).parents[1] / "calibrate" / "engelmayr2005.toml")
     static, _ = post.hold_out(full, "flex")
     assert post.split_cpu(full, 4) and post.split_cpu(static, 4) and post.split_cpu(static, 1)

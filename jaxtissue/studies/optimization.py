@@ -43,6 +43,7 @@ from ..simulate import simulate
 from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 from .objectives import CONSTRAINTS, OBJECTIVES, conditioning_dose
 from .robust import Uncertainty, chance_rank, check, read_uncertainty
+from .sweep import vmap_over_devices
 
 VARIABLES = ("period_s", "post_displacement_mm")
 DEFAULT_BOUNDS = {"period_s": (0.25, 10.0), "post_displacement_mm": (0.0, 10.0)}
@@ -178,9 +179,7 @@ class Design:
         if u is None:
             return self.evaluate_with(theta, self.params, autodiff)
         J, values, failed = self.evaluate_draws(theta, u.split()[0], autodiff)
-        kinds = [CONSTRAINTS[n].kind for n in self.constraints]
-        limits = list(self.constraints.values())
-        return u.objective(J, OBJECTIVES[self.objective].sense), u.limit_values(values, kinds, limits), jnp.any(failed)
+        return u.objective(J, OBJECTIVES[self.objective].sense), u.limit_values(values, self.violation), jnp.any(failed)
 
     def violation(self, values, margin=0.0):
         """g (relative; ≤ 0 where met) of constraint values, limits tightened by `margin`."""
@@ -239,19 +238,6 @@ class GridResult(NamedTuple):
     compile_seconds: float
 
 
-def _over_devices(batched, n: int):
-    """`batched` (vmapped: every argument and result has a leading batch axis of n)
-    sharded over the devices where they divide n, e.g. one per CPU core
-    (`sweep.use_all_cores`, as the command line does); else as it is."""
-    devices = jax.devices()
-    if len(devices) < 2 or n % len(devices):
-        return batched
-    from jax.sharding import Mesh, PartitionSpec
-
-    spec = PartitionSpec("batch")
-    return jax.shard_map(batched, mesh=Mesh(np.array(devices), ("batch",)), in_specs=spec, out_specs=spec, check_vma=False)
-
-
 def _compile(fn, *args):
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
@@ -270,7 +256,7 @@ def grid_search(design: Design, progress=None) -> GridResult:
     thetas = np.stack([np.broadcast_to(P.ravel()[:, None], (n * n, design.stages)),
                        np.broadcast_to(U.ravel()[:, None], (n * n, design.stages))], axis=-1)
     chunk = min(s.grid_chunk, n * n)
-    batch, compile_s = _compile(_over_devices(jax.vmap(design.evaluate), chunk), jnp.zeros((chunk, design.stages, 2)))
+    batch, compile_s = _compile(vmap_over_devices(design.evaluate, chunk), jnp.zeros((chunk, design.stages, 2)))
     t0 = time.perf_counter()
     J, V, F = [], [], []
     for b in range(0, n * n, chunk):
@@ -340,7 +326,7 @@ def optimize(design: Design, starts: np.ndarray, scale: float, progress=None) ->
     z = jnp.asarray(design.z_from_theta(jnp.asarray(starts)))
     state = jax.vmap(opt.init)(z)
     lam = jnp.zeros((len(starts), n_con))
-    batched, compile_s = _compile(_over_devices(jax.vmap(step), len(starts)), z, state, lam)
+    batched, compile_s = _compile(vmap_over_devices(step, len(starts)), z, state, lam)
     path, J, V, F, stamps = [], [], [], [], []
     t0 = time.perf_counter()
     for k in range(s.steps + 1):

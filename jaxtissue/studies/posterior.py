@@ -44,6 +44,7 @@ import numpy as np
 
 from ._problem_files import ModelSettings
 from .calibration import Problem
+from .sweep import use_cpu_devices, vmap_over_devices
 
 
 def import_arviz():
@@ -217,16 +218,8 @@ def nuts_programs(log_density, settings: SamplerSettings, phases: int = 1):
 
         return jax.lax.scan(one, state, keys)
 
-    adapt = jax.vmap(adapt, in_axes=(0, 0, None, None))
-    draws = jax.vmap(draws, in_axes=(0, 0, 0, 0, None))
-    devices = jax.devices()
-    if len(devices) > 1 and settings.chains % len(devices) == 0:  # chains split over devices (e.g. one per core)
-        from jax.sharding import Mesh, PartitionSpec
-
-        mesh = Mesh(np.array(devices), ("chains",))
-        c, r = PartitionSpec("chains"), PartitionSpec()
-        adapt = jax.shard_map(adapt, mesh=mesh, in_specs=(c, c, r, r), out_specs=c, check_vma=False)
-        draws = jax.shard_map(draws, mesh=mesh, in_specs=(c, c, c, c, r), out_specs=c, check_vma=False)
+    adapt = vmap_over_devices(adapt, settings.chains, (0, 0, None, None))
+    draws = vmap_over_devices(draws, settings.chains, (0, 0, 0, 0, None))
     return jax.jit(adapt), jax.jit(draws)
 
 
@@ -239,8 +232,6 @@ def split_cpu(problem: Problem, chains: int) -> bool:
     per-operation overhead that dominates a cheap density (1.3× faster than a device
     per chain). Returns whether the setting was made."""
     import os
-
-    from .sweep import use_cpu_devices
 
     observed = {o.regime for o in problem.observations} & set(problem.conditions)  # the conditions simulated
     coupled = any(problem.conditions[c].regime == "flex" for c in observed)

@@ -65,19 +65,17 @@ class Uncertainty:
         q = self.quantile if sense > 0 else 1.0 - self.quantile
         return jnp.quantile(J, q, axis=-1)
 
-    def limit_values(self, values, kinds, limits):
+    def limit_values(self, values, violation):
         """Per-draw constraint values (draws, constraints) -> the values the limits are
         judged on: their means, or with chance constraints those of the draw ranked k-th
-        by its largest relative violation (module docstring)."""
+        by its largest relative violation (module docstring), `violation(values)` the
+        per-draw violations (≤ 0 where a limit is met)."""
         if self.constraint_probability is None:
             return jnp.mean(values, axis=0)
         if values.shape[1] == 0:
             return jnp.zeros(0)
-        n = values.shape[0]
-        k = chance_rank(self.constraint_probability, n)
-        limits = jnp.asarray(limits, float)
-        ceiling = jnp.asarray([kind == "ceiling" for kind in kinds])
-        worst = jnp.max(jnp.where(ceiling, values / limits - 1.0, 1.0 - values / limits), axis=1)
+        k = chance_rank(self.constraint_probability, values.shape[0])
+        worst = jnp.max(violation(values), axis=1)
         return values[jnp.argsort(worst)[k - 1]]
 
 

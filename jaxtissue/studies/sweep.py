@@ -205,6 +205,20 @@ def use_cpu_devices(n: int) -> bool:
     return n >= 2 and add_xla_flag(f"--xla_force_host_platform_device_count={n}")
 
 
+def vmap_over_devices(fn, n: int, in_axes=0):
+    """`jax.vmap(fn, in_axes)` for a batch of n (in_axes 0 or None per argument; every
+    result batched), sharded over `jax.devices()` where their count divides n (e.g. one
+    per CPU core, `use_all_cores`); else the plain vmap."""
+    batched = jax.vmap(fn, in_axes=in_axes)
+    devices = jax.devices()
+    if len(devices) < 2 or n % len(devices):
+        return batched
+    b, r = jax.sharding.PartitionSpec("batch"), jax.sharding.PartitionSpec()
+    in_specs = b if in_axes == 0 else tuple(r if axis is None else b for axis in in_axes)
+    return jax.shard_map(batched, mesh=jax.sharding.Mesh(np.array(devices), ("batch",)), in_specs=in_specs, out_specs=b,
+                         check_vma=False)
+
+
 def join_processes(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
     """Join a sweep shared by several processes (`jax.distributed.initialize`; CPU
     collectives over gloo): every process runs every chunk on its share of the devices,
