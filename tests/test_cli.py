@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import xarray as xr
 
@@ -29,6 +30,7 @@ def static_run(tmp_path_factory):
         "simulate", "--regime", "static", "--t-end", "1.9e6", "--grid", "1", "20", "--set", "k_m0=2e-7", "--out", str(out)
     )
     assert code == 0, stderr
+    assert f"wrote {out}/" in stdout  # printed and flushed before the process ends without teardown
     return out
 
 
@@ -50,6 +52,27 @@ def test_params_file_round_trips(static_run, tmp_path):
     assert p.k_m0 == 2e-7 and p.k_c_max == 1.24e-5
     code = main(["simulate", "--params", str(static_run / "params.toml"), "--t-end", "2e4", "--grid", "1", "8", "--out", str(tmp_path / "again")])
     assert code == 0
+
+
+def test_console_ends_the_process_without_teardown_unless_in_a_process_group(monkeypatch):
+    """`jaxtissue` (`cli.console`): `main`'s exit code through `os._exit`, or through
+    `sys.exit` in a `jax.distributed` group (whose exit handlers shut it down)."""
+    from jaxtissue import cli
+
+    class Ended(Exception):
+        pass
+
+    def os_exit(code):
+        raise Ended(code)
+
+    monkeypatch.setattr(cli, "main", lambda: 3)
+    monkeypatch.setattr(cli.os, "_exit", os_exit)
+    with pytest.raises(Ended, match="3"):
+        cli.console()
+    monkeypatch.setattr(cli, "_joined_a_group", lambda: True)
+    with pytest.raises(SystemExit) as stop:
+        cli.console()
+    assert stop.value.code == 3
 
 
 def exit_code(argv):
@@ -171,9 +194,16 @@ def _check_reproduction(rep):
 
 def test_reproduction_on_small_grids(tmp_path):
     """The main job's cases, files and report over two growth intervals, on small grids
-    (the default grids through the command: the slow test below)."""
+    (the default grids through the command: the slow test below). The flex cases, run
+    as one program, give what `simulate` gives for each."""
     p = jt.paper_parameters()
-    results = jt.reproduce.run_cases(p, t_end_s=SMALL_FLEX["t_end_s"], log=lambda _: None, flex_grid=jt.Grid(*SMALL_FLEX["grid_shape"]))
+    grid = jt.Grid(*SMALL_FLEX["grid_shape"])
+    results = jt.reproduce.run_cases(p, t_end_s=SMALL_FLEX["t_end_s"], log=lambda _: None, flex_grid=grid)
+    for name in ("flex", "flex_2Hz", "flex_10mm"):
+        alone = jt.simulate(p, jt.reproduce.CASES[name], SMALL_FLEX["t_end_s"], grid)  # the suite's shared program
+        assert results[name].ts == alone.ts and bool(results[name].failed) is False
+        for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa", "post_force_max_N"):
+            np.testing.assert_allclose(getattr(results[name], k), getattr(alone, k), rtol=1e-12, err_msg=f"{name}: {k}")
     rep = tmp_path / "reproduce"
     rep.mkdir()
     jt.reproduce.write(results, p, rep)

@@ -230,7 +230,7 @@ from jaxtissue.studies import sweep
 assert sweep.use_all_cores()  # as `jaxtissue optimize` does
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
-from jaxtissue.studies.sweep import vmap_over_devices
+from jaxtissue.studies.sweep import map_over_devices, vmap_over_devices
 def step(z, state, lam):  # a start's step: arrays and a pytree in, a pytree out
     return z * state["m"] + lam.sum(), {"m": state["m"] + 1.0, "n": state["n"] * 2}, (jnp.sin(z).sum(), lam)
 n = 2 * len(jax.devices())
@@ -239,15 +239,19 @@ state = {"m": jnp.linspace(0, 1, n)[:, None] * jnp.ones((n, 3)), "n": jnp.arange
 plain = jax.jit(jax.vmap(step))(z, state, lam)
 split = jax.jit(vmap_over_devices(step, n))(z, state, lam)
 assert len(jax.devices()) > 1 and len(split[0].sharding.device_set) == len(jax.devices())
-for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(split)):
+mapped = jax.jit(map_over_devices(lambda a: step(*a), n))((z, state, lam))  # rows one after another on each device
+assert len(mapped[0].sharding.device_set) == len(jax.devices())
+for a, b, c in zip(jax.tree.leaves(plain), jax.tree.leaves(split), jax.tree.leaves(mapped)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_allclose(np.asarray(c), np.asarray(a), rtol=1e-15)
 print("ok", len(jax.devices()))
 """
 
 
 def test_batches_split_over_the_cores_compute_the_same():
     """`sweep.vmap_over_devices` (the starts and grid batches of `jaxtissue optimize`, over
-    one CPU device per core, in a process of its own) gives what one device gives."""
+    one CPU device per core, in a process of its own) and `sweep.map_over_devices`
+    (reproduce's flex cases) give what one device gives."""
     import os
     import subprocess
     import sys

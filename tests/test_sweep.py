@@ -111,6 +111,20 @@ def test_two_processes_share_a_sweep_with_one_device_per_core(static_file, tmp_p
     assert sorted(p.name for p in (out / "chunks").iterdir()) == ["00000000.npz", "00000004.npz", "00000008.npz", "sweep.json"]
 
 
+def test_even_batches_are_few_equal_and_split_over_every_device(monkeypatch):
+    """`sweep.even_batches`: the fewest batches of at most `most` rows, each a multiple of
+    the device count, padding as little as that allows."""
+    import jax
+
+    from jaxtissue.studies.sweep import even_batches
+
+    assert [even_batches(n, 32) for n in (1, 32, 33, 100)] == [1, 32, 17, 25]
+    monkeypatch.setattr(jax, "devices", lambda: [0, 1])
+    assert [even_batches(n, 32) for n in (1, 5, 32, 33, 100)] == [2, 6, 32, 18, 26]
+    monkeypatch.setattr(jax, "devices", lambda: [0, 1, 2, 3])
+    assert even_batches(5, 5) == 8 and even_batches(100, 32) == 28
+
+
 def test_space_filling_designs(tmp_path):
     path = tmp_path / "lhs.toml"
     path.write_text('regime = "static"\ndesign = "lhs"\nsamples = 8\nseed = 1\n[parameters]\n'

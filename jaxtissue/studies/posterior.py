@@ -44,7 +44,7 @@ import numpy as np
 
 from ._problem_files import ModelSettings
 from .calibration import Problem
-from .sweep import use_cpu_devices, vmap_over_devices
+from .sweep import even_batches, use_cpu_devices, vmap_over_devices
 
 
 def import_arviz():
@@ -1014,11 +1014,12 @@ def read_saved(folder) -> Saved:
     return Saved(names, values, base, model, observations)
 
 
-def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int = 0, batch: int = 25, progress=None):
+def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int = 0, batch: int = 32, progress=None):
     """Posterior predictive of every scalar output over time: `draws` posterior draws
     (chosen at random, without replacement) simulated with `protocol` at the posterior's
-    model resolution, `batch` at a time under vmap. An `xarray.Dataset` of each output
-    per (draw, time_s), plus `<output>_q05`, `_q50`, `_q95` per time."""
+    model resolution, at most `batch` at a time under vmap, each batch split over the
+    devices (`sweep.even_batches`). An `xarray.Dataset` of each output per (draw,
+    time_s), plus `<output>_q05`, `_q50`, `_q95` per time."""
     import xarray as xr
 
     from ..protocol import save_times
@@ -1036,7 +1037,8 @@ def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int 
                      coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options())
         return {k: getattr(r, k) for k in SCALARS}, r.failed
 
-    parts = _in_batches(jax.jit(jax.vmap(one)), chosen, batch, progress)
+    size = even_batches(len(chosen), batch)
+    parts = _in_batches(jax.jit(vmap_over_devices(one, size)), chosen, size, progress)
     times = save_times(t_end_s, m.coupling_interval_s)
     failed = np.concatenate([p[1] for p in parts])
     data = {}

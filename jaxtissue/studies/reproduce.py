@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import pathlib
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .. import io, limits, plots
@@ -56,16 +58,31 @@ def calibrated_bands(t_end_s=T_END_S, draws: int = 32, folder=CALIBRATED, progre
 def run_cases(params, t_end_s=T_END_S, progress=False, log=print, flex_grid=None, beam=BeamGrid()):
     """Every case of `CASES`, and flexure with the paper's rule (with the paper's C = 70
     unless `params` chose another, `coupling.with_rule_constant`); flexure on
-    `flex_grid` (default `Grid.default("flex")`) with the beam `beam`."""
+    `flex_grid` (default `Grid.default("flex")`) with the beam `beam`. The flex cases
+    differ only in period and amplitude: they run as one program (`_batch`)."""
     results = {}
-    flex_kw = dict(grid=flex_grid, beam=beam, progress=progress)
-    for name, protocol in CASES.items():
-        log(f"running {name} ...")
-        kw = dict(progress=progress) if protocol.regime == "static" else flex_kw
-        results[name] = simulate(params, protocol, t_end_s=t_end_s, **kw)
+    log("running static ...")
+    results["static"] = simulate(params, CASES["static"], t_end_s=t_end_s, progress=progress)
+    flex = [name for name, protocol in CASES.items() if protocol.regime == "flex"]
+    log(f"running {', '.join(flex)} ...")
+    results.update(zip(flex, _batch(params, [CASES[name] for name in flex], t_end_s, flex_grid, beam)))
     log("running flex with the paper's lumping rule ...")
-    results["flex_paper_rule"] = simulate(params, Protocol.flex(lumping="paper"), t_end_s=t_end_s, **flex_kw)
+    results["flex_paper_rule"] = simulate(params, Protocol.flex(lumping="paper"), t_end_s=t_end_s, grid=flex_grid, beam=beam,
+                                          progress=progress)
     return results
+
+
+def _batch(params, protocols: list, t_end_s, grid, beam) -> list:
+    """`simulate` of `protocols` (equal but for their floats) as one program, its runs
+    split over the devices (`sweep.map_over_devices`; padded to a multiple of their
+    count): a Result per protocol."""
+    from .sweep import even_batches, map_over_devices
+
+    n = even_batches(len(protocols), len(protocols))
+    padded = protocols + protocols[-1:] * (n - len(protocols))
+    stacked = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v, float) for v in x]), *padded)
+    out = jax.jit(map_over_devices(lambda q: simulate(params, q, t_end_s, grid, beam=beam), n))(stacked)
+    return [jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i in range(len(protocols))]
 
 
 def three_week(result) -> dict:

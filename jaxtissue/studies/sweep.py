@@ -209,7 +209,19 @@ def vmap_over_devices(fn, n: int, in_axes=0):
     """`jax.vmap(fn, in_axes)` for a batch of n (in_axes 0 or None per argument; every
     result batched), sharded over `jax.devices()` where their count divides n (e.g. one
     per CPU core, `use_all_cores`); else the plain vmap."""
-    batched = jax.vmap(fn, in_axes=in_axes)
+    return _split(jax.vmap(fn, in_axes=in_axes), n, in_axes)
+
+
+def map_over_devices(fn, n: int):
+    """`jax.lax.map(fn, xs)` for a batch of n, its rows split over `jax.devices()` as
+    `vmap_over_devices` splits them: each device runs its rows one after another with
+    `fn`'s own program. For runs that vmap makes dearer per row (its while loops run
+    to the slowest row, its conds take both branches), such as full flex runs."""
+    return _split(lambda xs: jax.lax.map(fn, xs), n, 0)
+
+
+def _split(batched, n: int, in_axes):
+    """`batched` sharded along its batch axis over `jax.devices()` where their count divides n."""
     devices = jax.devices()
     if len(devices) < 2 or n % len(devices):
         return batched
@@ -217,6 +229,15 @@ def vmap_over_devices(fn, n: int, in_axes=0):
     in_specs = b if in_axes == 0 else tuple(r if axis is None else b for axis in in_axes)
     return jax.shard_map(batched, mesh=jax.sharding.Mesh(np.array(devices), ("batch",)), in_specs=in_specs, out_specs=b,
                          check_vma=False)
+
+
+def even_batches(n: int, most: int) -> int:
+    """The batch size that runs n rows in the fewest batches of at most `most` rows,
+    as equal as can be and each a multiple of the device count (`vmap_over_devices`
+    then splits every batch over all devices; the last batch is padded)."""
+    devices = len(jax.devices())
+    count = math.ceil(n / max(most, 1))
+    return devices * math.ceil(n / (count * devices))
 
 
 def join_processes(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
