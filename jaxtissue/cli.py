@@ -519,15 +519,13 @@ def cmd_calibrate(args) -> int:
     else:
         problem = calibration.read_problem(args.problem, overrides)
     held_out = None
-    if args.hold_out is not None:
-        from .studies import posterior
-
-        if not args.posterior:
-            raise InputError("--hold-out needs --posterior (the held-out data are predicted from the posterior)")
-        problem, held_out = posterior.hold_out(problem, args.hold_out)
+    if args.hold_out is not None and not args.posterior:
+        raise InputError("--hold-out needs --posterior (the held-out data are predicted from the posterior)")
     if args.posterior:
         from .studies import posterior
 
+        if args.hold_out is not None:
+            problem, held_out = posterior.hold_out(problem, args.hold_out)
         posterior.split_cpu(problem, args.chains)  # before anything starts JAX's backends
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
@@ -537,8 +535,6 @@ def cmd_calibrate(args) -> int:
         return 1
     sampled = None
     if args.posterior:
-        from .studies import posterior
-
         settings = posterior.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples, seed=args.seed)
         sampled = posterior.run(cal, settings, progress=progress, held_out=held_out)
     with io.output_folder(args.out, args.overwrite) as tmp:

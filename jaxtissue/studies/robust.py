@@ -144,14 +144,11 @@ def check(design, theta, fresh: np.ndarray, evaluate_draws) -> dict:
     """The protocol θ on fresh draws: its risk-measured objective and the fraction of
     draws for which every limit holds. `evaluate_draws(θ, draws)` -> (J, values,
     failed) per draw."""
-    from .objectives import CONSTRAINTS, OBJECTIVES
+    from .objectives import OBJECTIVES
 
     J, values, failed = (np.asarray(a) for a in evaluate_draws(theta, fresh))
     ok = ~failed
-    held = np.ones(len(J), bool)
-    for k, (name, limit) in enumerate(design.constraints.items()):
-        v = values[:, k]
-        held &= (v <= limit) if CONSTRAINTS[name].kind == "ceiling" else (v >= limit)
+    held = np.all(np.asarray(design.violation(jnp.asarray(values))).reshape(len(J), -1) <= 0, axis=1)  # as the optimiser judges a draw
     u = design.uncertainty
     return {
         "objective": float(u.objective(jnp.asarray(J[ok]), OBJECTIVES[design.objective].sense)),
