@@ -13,9 +13,11 @@ import sys
 import tempfile
 import time
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 COMMANDS = {
     "simulate --regime flex": ["simulate", "--regime", "flex", "--no-progress"],
     "reproduce": ["reproduce", "--no-progress"],
+    "calibrate (no profiles)": ["calibrate", os.path.join(ROOT, "calibrate", "engelmayr2005.toml"), "--no-profiles", "--no-progress"],
 }
 
 
@@ -33,7 +35,7 @@ def timed_run(args, cache_home, out):
 def main(simulate_only=False):
     print(f"{'command':26s}{'first (s)':>12s}{'second (s)':>12s}{'second/first':>14s}")
     for label, args in COMMANDS.items():
-        if simulate_only and label == "reproduce":
+        if simulate_only and not label.startswith("simulate"):
             continue
         with tempfile.TemporaryDirectory() as tmp:
             first = timed_run(args, tmp, os.path.join(tmp, "first"))

@@ -115,6 +115,34 @@ def test_observation_between_save_times_is_refused(tmp_path):
         cal.read_problem(problem_toml(tmp_path, "m.csv", ["k_a"], regimes=("static",)))
 
 
+def test_a_static_condition_seen_once_keeps_only_its_end_state(tmp_path):
+    """A static condition observed at one time after seeding (as in the Engelmayr data)
+    runs with its end state only: the same model values and Jacobian as from its
+    series, to round-off; seeded values from the seeded state; NaN where its solve
+    fails; and a program with no host callback, which the compilation cache keeps."""
+    import jax
+
+    rows = "".join(f"{q},{r},{t},{v},5,{u},\n" for q, u, v in (("dna_ug_per_g", "ug/g", 500), ("E_eff_kPa", "kPa", 10))
+                   for r, t in (("seeded", 0), ("static", 3 * WEEK)))
+    (tmp_path / "once.csv").write_text(HEADER + rows)
+    (tmp_path / "twice.csv").write_text(HEADER + rows + f"collagen_mg_per_g,static,{WEEK},0.1,0.05,mg/g,\n")
+    once = cal.read_problem(problem_toml(tmp_path, "once.csv", ["k_a", "k_m0"], regimes=("static",)))
+    twice = cal.read_problem(problem_toml(tmp_path, "twice.csv", ["k_a", "k_m0"], regimes=("static",)))  # a series
+    assert once._end_only("static") and not twice._end_only("static")
+    t = once.t_from_values([1.0e-5, 2.0e-7])
+    np.testing.assert_allclose(once.model_values(t), twice.model_values(t)[:4], rtol=1e-12)
+    np.testing.assert_allclose(jax.jacfwd(once.model_values)(t), jax.jacfwd(twice.model_values)(t)[:4], rtol=1e-10, atol=1e-14)
+    assert "callback" not in jax.jit(once.residuals).lower(t).as_text()
+
+    class FewSteps(type(once.model)):
+        def options(self):
+            return dataclasses.replace(super().options(), max_steps=2)
+
+    failing = dataclasses.replace(once, model=FewSteps(**dataclasses.asdict(once.model)))
+    values = np.asarray(failing.model_values(t))
+    assert np.all(np.isfinite(values[[0, 2]])) and np.all(np.isnan(values[[1, 3]]))  # seeded rows, static rows
+
+
 # ---- fitting
 
 

@@ -37,11 +37,18 @@ from ..data import DataError, Observation, read_measurements
 from ..io import InputError, params_from_table, read_toml
 from ..limits import check_study
 from ..numerics import LevenbergMarquardt
-from ..params import FIELDS, Params, suggest
+from ..params import FIELDS, Params, nondimensionalise, suggest
 from ..protocol import Protocol, save_times
+from ..result import RESULTS, observe
 from ..simulate import simulate
+from ..state import State
 from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 from .priors import Prior, default_prior, read_prior
+
+def _seeded(params: Params, grid) -> dict:
+    """The outputs of the seeded state (docs/model.md §2) that it determines."""
+    return observe(State.initial(nondimensionalise(params), grid), params, grid)
+
 
 CHI2_95 = 3.841458820694124
 """95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
@@ -138,22 +145,39 @@ class Problem:
         return plan
 
     def simulate(self, params: Params) -> dict:
-        """`{condition: Result}` up to each condition's last observation."""
+        """`{condition: Result}` up to each condition's last observation. A static
+        condition observed at one time after seeding keeps only its end state there
+        (`save="end"`): a series is checked by diffrax with a host callback, and programs
+        with one are never cached (docs/numerics.md, "Compilation")."""
         m = self.model
         return {
             name: simulate(params, self.conditions[name], t_end, m.grid(self.conditions[name].regime),
-                           coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options())
+                           coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options(),
+                           save="end" if self._end_only(name) else "intervals")
             for name, t_end in self._plan()
         }
 
+    def _end_only(self, name: str) -> bool:
+        return self.conditions[name].regime == "static" and len({o.time_s for o in self.observations if o.regime == name}) == 1 \
+            and min(o.time_s for o in self.observations if o.regime == name) > 0
+
     def model_values(self, t) -> jax.Array:
-        """The model's value for each observation (`observations` order)."""
-        results = self.simulate(self.params(t))
-        first = next(iter(results.values()))
+        """The model's value for each observation (`observations` order); at t = 0 in a
+        condition kept at its end only, the seeded state's (no loading: no force)."""
+        params = self.params(t)
+        results = self.simulate(params)
+        first = next(iter(results))
         out = []
         for o in self.observations:
-            r = first if o.regime == "seeded" else results[o.regime]
-            out.append(getattr(r, o.quantity)[r.index(o.time_s)])
+            name = first if o.regime == "seeded" else o.regime
+            r = results[name]
+            if not self._end_only(name):
+                out.append(getattr(r, o.quantity)[r.index(o.time_s)])
+            elif o.time_s == 0:
+                out.append(_seeded(params, self.model.grid("static")).get(o.quantity, jnp.zeros(())))
+            else:  # a failed solve leaves a finite state at its end: invalid, as a series' unreached times are
+                solved = (r.status != RESULTS.max_steps_reached) & (r.status != RESULTS.growth_failed)
+                out.append(jnp.where(solved, getattr(r, o.quantity)[-1], jnp.nan))
         return jnp.stack(out)
 
     def data(self):
