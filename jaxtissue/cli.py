@@ -140,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--t-end", type=_positive_float, default=T_END_S, metavar="S", help=f"end of culture in seconds (default {T_END_S:g})")
     _parameter_arguments(r)
     _output_arguments(r)
-    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bars (default: on a terminal)")
+    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help=f"progress bars over the runs (their programs are then not cached; default: on a terminal, for flex runs expected to last over {LONG_RUN_S:g} s)")
     r.set_defaults(func=cmd_reproduce)
 
     k = sub.add_parser("calibrate", help="fit parameters to measurements (multi-start LM, standard errors, profiles)")
@@ -347,11 +347,8 @@ def cmd_simulate(args) -> int:
                   f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
     # the bar is fed from inside the run, which keeps its program out of the compilation
     # cache: by default only for grids where the run outlasts its compilation
-    if args.progress is None:
-        intervals = limits.check_intervals(args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S))
-        progress = sys.stderr.isatty() and limits.expected_seconds(grid.nx * grid.ny, intervals, args.regime) > LONG_RUN_S
-    else:
-        progress = args.progress
+    progress = args.progress if args.progress is not None else \
+        _long_run(grid.nx * grid.ny, args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S), args.regime)
     kept = pathlib.Path(f"{args.out}.checkpoint")
     if kept.exists() and not args.resume:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
@@ -474,6 +471,16 @@ def cmd_cycle(args) -> int:
     return 0
 
 
+def _long_run(cells: int, t_end_s: float, coupling_interval_s: float, regime: str) -> bool:
+    """Whether a run shows a progress bar by default: on a terminal, where it is expected
+    to outlast `LONG_RUN_S` (the bar, fed from inside the run, keeps its program out of
+    the compilation cache)."""
+    from . import limits
+
+    intervals = limits.check_intervals(t_end_s, coupling_interval_s)
+    return sys.stderr.isatty() and limits.expected_seconds(cells, intervals, regime) > LONG_RUN_S
+
+
 def cmd_reproduce(args) -> int:
     from . import io
     from .studies import reproduce, sweep
@@ -482,7 +489,8 @@ def cmd_reproduce(args) -> int:
 
     params = load_params(args)
     io.check_output_folder(args.out, args.overwrite)
-    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    progress = args.progress if args.progress is not None else \
+        _long_run(int(np.prod(DEFAULT_SHAPES["flex"])), args.t_end, COUPLING_INTERVAL_S, "flex")
     results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
     failed = [name for name, r in results.items() if bool(r.failed)]
     if failed:
