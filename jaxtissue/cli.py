@@ -345,8 +345,6 @@ def cmd_simulate(args) -> int:
             resolution = {"beam": fitted.beam(), "coupling_interval_s": fitted.coupling_interval_s}
             print(f"model resolution from {args.params} [model]: grid {grid.nx} x {grid.ny}, beam {fitted.beam_segments} x "
                   f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
-    # the bar is fed from inside the run, which keeps its program out of the compilation
-    # cache: by default only for grids where the run outlasts its compilation
     progress = args.progress if args.progress is not None else \
         _long_run(grid.nx * grid.ny, args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S), args.regime)
     kept = pathlib.Path(f"{args.out}.checkpoint")
@@ -843,9 +841,10 @@ def _kept_checkpoint(args) -> str:
         return f"; the checkpoint {out}.checkpoint is kept: continue with `jaxtissue simulate --resume {out}`"
     return ""
 
+
 def console() -> None:
     """The `jaxtissue` command: `main`, then the process ends with its exit code without
-    the interpreter's teardown of the loaded libraries (~0.7 s; every file is written
+    the interpreter's teardown of the loaded libraries (~0.8 s; every file is written
     and closed by then). A process of a multi-process sweep (`jax.distributed`) leaves
     through `sys.exit`, whose exit handlers shut the group down."""
     code = main()

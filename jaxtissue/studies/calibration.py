@@ -45,11 +45,6 @@ from ..state import State
 from ._problem_files import ModelSettings, bounds, settings, table, unit_latin_hypercube
 from .priors import Prior, default_prior, read_prior
 
-def _seeded(params: Params, grid) -> dict:
-    """The outputs of the seeded state (docs/model.md §2) that it determines."""
-    return observe(State.initial(nondimensionalise(params), grid), params, grid)
-
-
 CHI2_95 = 3.841458820694124
 """95 % quantile of χ² with one degree of freedom: the profile-likelihood threshold."""
 
@@ -88,6 +83,11 @@ class FitSettings:
     rtol: float = 1e-5  # LM stops when steps in t and changes of r are below 1e-5, or χ² changes by < 1e-5 χ²
     profile_points: int = 4  # per side
     profile_max_steps: int = 30
+
+
+def _seeded(params: Params, grid) -> dict:
+    """The outputs of the seeded state (docs/model.md §2) that it determines."""
+    return observe(State.initial(nondimensionalise(params), grid), params, grid)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)  # hashed by identity: compiled solvers are cached per problem
