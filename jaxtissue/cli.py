@@ -856,8 +856,7 @@ def console() -> None:
 
 
 def _joined_a_group() -> bool:
-    distributed = sys.modules.get("jax._src.distributed")
-    return getattr(getattr(distributed, "global_state", None), "client", None) is not None
+    return "jax" in sys.modules and sys.modules["jax"].distributed.is_initialized()
 
 
 if __name__ == "__main__":

@@ -158,8 +158,8 @@ class Problem:
         }
 
     def _end_only(self, name: str) -> bool:
-        return self.conditions[name].regime == "static" and len({o.time_s for o in self.observations if o.regime == name}) == 1 \
-            and min(o.time_s for o in self.observations if o.regime == name) > 0
+        times = {o.time_s for o in self.observations if o.regime == name}
+        return self.conditions[name].regime == "static" and len(times) == 1 and min(times) > 0
 
     def model_values(self, t) -> jax.Array:
         """The model's value for each observation (`observations` order); at t = 0 in a
@@ -167,6 +167,7 @@ class Problem:
         params = self.params(t)
         results = self.simulate(params)
         first = next(iter(results))
+        seeded = _seeded(params, self.model.grid("static")) if any(map(self._end_only, results)) else {}
         out = []
         for o in self.observations:
             name = first if o.regime == "seeded" else o.regime
@@ -174,7 +175,7 @@ class Problem:
             if not self._end_only(name):
                 out.append(getattr(r, o.quantity)[r.index(o.time_s)])
             elif o.time_s == 0:
-                out.append(_seeded(params, self.model.grid("static")).get(o.quantity, jnp.zeros(())))
+                out.append(seeded.get(o.quantity, jnp.zeros(())))
             else:  # a failed solve leaves a finite state at its end: invalid, as a series' unreached times are
                 solved = (r.status != RESULTS.max_steps_reached) & (r.status != RESULTS.growth_failed)
                 out.append(jnp.where(solved, getattr(r, o.quantity)[-1], jnp.nan))
