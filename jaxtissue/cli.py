@@ -844,7 +844,7 @@ def _kept_checkpoint(args) -> str:
 
 def console() -> None:
     """The `jaxtissue` command: `main`, then the process ends with its exit code without
-    the interpreter's teardown of the loaded libraries (~0.8 s; every file is written
+    the interpreter's teardown of the loaded libraries (every file is written
     and closed by then). A process of a multi-process sweep (`jax.distributed`) leaves
     through `sys.exit`, whose exit handlers shut the group down."""
     code = main()
