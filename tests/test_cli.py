@@ -196,8 +196,9 @@ def _check_reproduction(rep):
 
 def test_reproduction_on_small_grids(tmp_path):
     """The main job's cases, files and report over two growth intervals, on small grids
-    (the default grids through the command: the slow test below). The flex cases, run
-    as one program, give what `simulate` gives for each."""
+    (the default grids through the command: the slow test below). The flex cases give
+    what `simulate` gives for each (over several devices they run as one program:
+    `sweep.map_over_devices`, tests/test_optimization.py and benchmarks/flex_cases.py)."""
     p = jt.paper_parameters()
     grid = jt.Grid(*SMALL_FLEX["grid_shape"])
     results = jt.reproduce.run_cases(p, t_end_s=SMALL_FLEX["t_end_s"], log=lambda _: None, flex_grid=grid)

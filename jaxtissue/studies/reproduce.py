@@ -75,9 +75,12 @@ def run_cases(params, t_end_s=T_END_S, progress=False, log=print, flex_grid=None
 def _batch(params, protocols: list, t_end_s, grid, beam) -> list:
     """`simulate` of `protocols` (equal but for their floats) as one program, its runs
     split over the devices (`sweep.map_over_devices`; padded to a multiple of their
-    count): a Result per protocol."""
+    count): a Result per protocol. On one device, one run after another with
+    `simulate`'s own program (the same work, and no second program to compile)."""
     from .sweep import even_batches, map_over_devices
 
+    if len(jax.devices()) == 1:
+        return [simulate(params, q, t_end_s, grid, beam=beam) for q in protocols]
     n = even_batches(len(protocols), len(protocols))
     padded = protocols + protocols[-1:] * (n - len(protocols))
     stacked = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v, float) for v in x]), *padded)
