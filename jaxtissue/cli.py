@@ -152,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--posterior", action="store_true", help="then sample the posterior with NUTS: posterior.nc, pairs.png, traces.png")
     k.add_argument("--chains", type=_grid_size, default=4, metavar="N", help="with --posterior: chains, batched (default 4)")
     k.add_argument("--warmup", type=_grid_size, default=200, metavar="N", help="with --posterior: warmup draws per chain (default 200)")
-    k.add_argument("--samples", type=_grid_size, default=300, metavar="N", help="with --posterior: kept draws per chain (default 300)")
+    k.add_argument("--samples", type=_grid_size, default=600, metavar="N", help="with --posterior: kept draws per chain (default 600)")
     k.add_argument("--seed", type=int, default=0, metavar="S", help="with --posterior: random seed (default 0)")
     k.add_argument("--hold-out", metavar="CONDITION", help="with --posterior: calibrate without that condition's data, then predict them")
     _output_arguments(k, required=False)

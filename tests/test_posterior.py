@@ -90,12 +90,22 @@ def test_draws_match_the_closed_form_posterior():
     mean = cov @ A.T @ y / NOISE**2
     settings = post.SamplerSettings(chains=4, warmup=200, samples=500)
     programs = post.nuts_programs(_linear_gaussian, settings)
-    (u, _, div, *_), *_ = post.run_chains(programs, np.zeros((4, 2)) + 3.0, np.eye(2), settings, args=jnp.asarray(y))
+    (u, _, div, *_), step_size, imm, *_ = post.run_chains(programs, np.zeros((4, 2)) + 3.0, np.eye(2), settings,
+                                                           args=jnp.asarray(y))
+    assert np.all(step_size == step_size[0]) and np.all(imm == imm[0])  # the chains' pooled adaptation
     draws = u.reshape(-1, 2)
     se = np.sqrt(np.diag(cov) / 500)  # ≥ the Monte Carlo error of 2000 draws with ESS ≥ 500
     assert np.all(np.abs(draws.mean(axis=0) - mean) < 4 * se)
     np.testing.assert_allclose(np.cov(draws.T), cov, rtol=0.15, atol=0.05 * np.max(np.diag(cov)))
     assert div.sum() == 0
+
+
+def test_pooled_adaptation_is_the_geometric_mean_step_and_the_mean_metric():
+    steps = np.array([0.1, 0.4, 0.2, 0.2])
+    imms = np.stack([np.diag([1.0, 2.0]), np.diag([3.0, 2.0]), np.eye(2), [[1.0, 0.5], [0.5, 2.0]]])
+    step, imm = post.pooled_adaptation(steps, imms)
+    np.testing.assert_allclose(step, np.full(4, 0.2), rtol=1e-15)
+    np.testing.assert_allclose(imm, np.broadcast_to([[1.5, 0.125], [0.125, 1.75]], (4, 2, 2)), rtol=1e-15)
 
 
 # ---- priors and the unbounded coordinates

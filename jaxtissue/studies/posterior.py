@@ -63,13 +63,14 @@ class SamplerSettings:
 
     chains: int = 4
     warmup: int = 200
-    samples: int = 300
+    samples: int = 600
     seed: int = 0
     target_acceptance: float = 0.8
     max_tree_depth: int = 6  # at most 2⁶ − 1 leapfrog steps a draw
     warmup_tree_depth: int = 4  # at most 2⁴ − 1 a warmup draw: early steps must not run to the cap
     initial_step_size: float = 0.1  # the warmup's first, in the whitened coordinates z
     jitter: float = 0.5  # spread of the chains' starts around the ridge, in z (`whitening`)
+    pool: bool = True  # the draws use the chains' pooled step size and mass matrix (`pooled_adaptation`)
 
 
 # ---------------------------------------------------------------------------------------
@@ -244,8 +245,9 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
     `refit(path, end, args) -> (args, u)`: the warmup runs in two halves (programs built
     with `phases=2`), and between them `refit` turns the first half's positions `path`
     (chains, steps, k) and end points into new args and starts for the second, which
-    starts from the first's inverse mass matrix averaged over the chains.
-    Returns (position, log density, divergent, acceptance, leapfrog steps) arrays of
+    starts from the first's inverse mass matrix averaged over the chains. The draws run
+    with the chains' pooled step size and metric where `settings.pool`
+    (`pooled_adaptation`). Returns (position, log density, divergent, acceptance, leapfrog steps) arrays of
     shape (chains, samples, ...), the step sizes, inverse mass matrices and seconds, and
     the args the draws ran with."""
     adapt, draws = programs
@@ -263,6 +265,8 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
         imm0 = np.mean(np.asarray(imm), axis=0)  # the second half starts from the first's metric, pooled over the chains
         state, step_size, imm, _ = jax.block_until_ready(adapt(keys[chains:], jnp.asarray(u1), jnp.asarray(imm0), args))
     seconds["warmup"] = time.perf_counter() - start
+    if settings.pool:
+        step_size, imm = pooled_adaptation(step_size, imm)
     if progress is not None:
         progress(settings.warmup - (settings.warmup // 2 if refit is not None else 0))
     start = time.perf_counter()
@@ -280,6 +284,18 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
     seconds["sampling"] = time.perf_counter() - start
     arrays = tuple(np.concatenate(a, axis=1) for a in zip(*parts))
     return arrays, np.asarray(step_size), np.asarray(imm), seconds, args
+
+
+def pooled_adaptation(step_size, inverse_mass_matrix):
+    """The chains' warmup estimates pooled, the same for every chain: the geometric mean
+    of the step sizes (chains,) and the mean of the inverse mass matrices (chains, k, k)
+    (docs/numerics.md, "Posterior sampling"). The chains sample one posterior, and each
+    warmup estimates its own from a hundred-odd correlated positions: their spread is
+    noise, which would leave chains with trajectories of different lengths that mix at
+    different rates."""
+    step_size, imm = np.asarray(step_size), np.asarray(inverse_mass_matrix)
+    return (np.full_like(step_size, np.exp(np.mean(np.log(step_size)))),
+            np.broadcast_to(imm.mean(axis=0), imm.shape).copy())
 
 
 class Ridge(NamedTuple):
