@@ -8,7 +8,8 @@ Each sampler gets the same wall-clock budget: NUTS its warmup and draws, emcee a
 ensemble steps as fit in the same time (its first half discarded as burn-in). Effective
 sample size: ArviZ's bulk ESS (minimum over the free parameters) of NUTS's chains;
 for emcee, walkers × kept steps / its integrated autocorrelation time (emcee's own
-estimate, the largest over the parameters). Compilation is timed apart.
+estimate, the largest over the parameters). Compilation is timed apart; XLA compiles
+as for the command line (`JAXTISSUE_XLA_DEFAULTS=1`: with its own defaults).
 
     python benchmarks/posterior.py [--chains 4] [--warmup 200] [--samples 1000] [--walkers 16] [--hold-out CONDITION]
 
@@ -26,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtissue.cache import use_fast_compilation
 from jaxtissue.studies import calibration as cal
 from jaxtissue.studies import posterior as post
 
@@ -44,6 +46,7 @@ def main():
     parser.add_argument("--hold-out", metavar="CONDITION", help="leave that condition's data out of the posterior")
     args = parser.parse_args()
 
+    use_fast_compilation()  # XLA's settings as the command line's
     problem = cal.read_problem(args.problem, {"starts": 1})
     if args.hold_out:
         problem, _ = post.hold_out(problem, args.hold_out)
