@@ -26,7 +26,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--samples", type=int, default=300)
-    parser.add_argument("--warmup", type=int, default=200)
+    parser.add_argument("--warmup", type=int, default=300)
     parser.add_argument("--chains", type=int, default=4)
     args = parser.parse_args()
     use_fast_compilation()  # XLA's settings as the command line's (the chains' paths hang on rounding)

@@ -11,7 +11,7 @@ for emcee, walkers × kept steps / its integrated autocorrelation time (emcee's 
 estimate, the largest over the parameters). Compilation is timed apart; XLA compiles
 as for the command line (`JAXTISSUE_XLA_DEFAULTS=1`: with its own defaults).
 
-    python benchmarks/posterior.py [--chains 4] [--warmup 200] [--samples 1000] [--walkers 16] [--hold-out CONDITION]
+    python benchmarks/posterior.py [--chains 4] [--warmup 300] [--samples 1000] [--walkers 16] [--hold-out CONDITION]
 
 `--hold-out flex` samples the posterior of the static data alone (every log density a
 static run): minutes on 2 cores, where the full problem's flex runs take hours.
@@ -40,7 +40,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--problem", default=str(PROBLEM))
     parser.add_argument("--chains", type=int, default=4)
-    parser.add_argument("--warmup", type=int, default=200)
+    parser.add_argument("--warmup", type=int, default=300)
     parser.add_argument("--samples", type=int, default=1000)
     parser.add_argument("--walkers", type=int, default=16)
     parser.add_argument("--hold-out", metavar="CONDITION", help="leave that condition's data out of the posterior")
@@ -62,12 +62,14 @@ def main():
     white = post.whitening(problem, best.t, best.jacobian, args.chains)  # the coordinates `calibrate --posterior` samples in
     z0, sampler_args = white.z0, post.sampler_args(white)
     programs, refit = post.whitened_programs(problem, settings), post.warmup_refit(settings)  # as `calibrate --posterior`
+    phases = post.warmup_phases(settings)
     start = time.perf_counter()
     short = post.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=1)
-    post.run_chains(programs, z0, np.eye(k), short, args=sampler_args, chunk=args.samples, refit=refit)  # compiles both programs
+    post.run_chains(programs, z0, np.eye(k), short, args=sampler_args, chunk=args.samples, refit=refit,
+                    phases=phases)  # compiles both programs
     compile_s = time.perf_counter() - start
     (v, _, div, _, steps), _, _, seconds, used = post.run_chains(programs, z0, np.eye(k), settings, args=sampler_args,
-                                                                 chunk=args.samples, refit=refit)
+                                                                 chunk=args.samples, refit=refit, phases=phases)
     u = np.asarray(post.u_from_v(problem, used, jnp.asarray(v)))
     nuts_s = seconds["warmup"] + seconds["sampling"]
     az = post.import_arviz()

@@ -5,6 +5,7 @@ tests/test_posterior_study.py."""
 
 import dataclasses
 import math
+import statistics
 
 import jax
 import jax.numpy as jnp
@@ -281,7 +282,7 @@ def test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds():
     print(f"ridge out of a corner: means {mean.round(4)} (quadrature {exact.round(4)}), bulk ESS {ess.round()}, "
           f"{draws.leapfrog_steps.mean():.1f} leapfrog steps a draw, {int(draws.diverging.sum())} divergent")
     assert np.all(np.abs(mean - exact) < 4 * sd / np.sqrt(ess))
-    assert np.all(ess > 250) and draws.leapfrog_steps.mean() < 7 and draws.diverging.sum() == 0
+    assert np.all(ess > 250) and draws.leapfrog_steps.mean() < 7 and draws.diverging.sum() < 0.01 * draws.diverging.size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -430,7 +431,7 @@ def test_warmup_correction_inverts_and_measures_a_ridge_the_shears_miss():
     z = np.stack([lead, lead**2 + 0.5 * np.exp(0.5 * lead) * rng.normal(size=4000), rng.normal(size=4000)], axis=-1)
     correction = post.fit_correction(z, 0)
     v = np.asarray(post.v_from_z(correction, jnp.asarray(z)))
-    np.testing.assert_allclose(v[:, 0], z[:, 0], atol=0)
+    np.testing.assert_allclose(v[:, 0], z[:, 0], atol=0.15)  # a normal leader keeps (nearly) its coordinate
     x = np.asarray(correction.x)
     inside = np.flatnonzero((lead > x[0]) & (lead < x[-1]))
     chunks = np.array_split(inside[np.argsort(lead[inside])], 6)
@@ -447,7 +448,8 @@ def test_warmup_correction_inverts_and_measures_a_ridge_the_shears_miss():
         J = jax.jacfwd(lambda x: post.z_from_v(correction, x)[0])(jnp.asarray(point))
         np.testing.assert_allclose(post.z_from_v(correction, jnp.asarray(point))[1], np.linalg.slogdet(J)[1], atol=1e-12)
     identity = post.no_correction(3, 1)
-    np.testing.assert_allclose(post.z_from_v(identity, jnp.asarray(z[:10]))[0], z[:10], atol=0)
+    np.testing.assert_allclose(post.z_from_v(identity, jnp.asarray(z[:10]))[0], z[:10], atol=1e-14)
+    np.testing.assert_allclose(post.v_from_z(identity, jnp.asarray(z[:10])), z[:10], atol=1e-14)
 
     def log_density(x):
         y, log_j = post.z_from_v(correction, x)
@@ -475,21 +477,50 @@ def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
     settings = post.SamplerSettings(chains=4, warmup=200, samples=250)
 
     def refit(path, end, correction):  # `posterior.correct` without the whitening
-        return post.refit_correction(path, end, int(correction.lead))
+        return post.refit_correction(path, end, correction)
 
     az = post.import_arviz()
     start = np.random.default_rng(0).normal(size=(4, 2)) * [1.0, 0.1]
     results = {}
-    for phases, fit in ((1, None), (2, refit)):
+    for phases, fit in ((1, None), (post.warmup_phases(settings), refit)):
         (v, _, div, _, steps), _, _, _, correction = post.run_chains(post.nuts_programs(_funnel, settings, phases), start,
-                                                                     np.eye(2), settings, args=post.no_correction(2), refit=fit)
+                                                                     np.eye(2), settings, args=post.no_correction(2),
+                                                                     refit=fit, phases=phases)
         a = np.asarray(post.z_from_v(correction, jnp.asarray(v))[0])[..., 0]
         ess = float(az.ess(a))
         results[phases] = (1000 * ess / steps.sum(), a.mean(), a.std(), ess, steps.mean(), int(div.sum()))
     print("funnel: ESS of a per 1000 leapfrog steps, its mean, SD, ESS, steps a draw, divergent: without the correction "
-          f"{np.round(results[1], 3)}, with it {np.round(results[2], 3)}")
-    assert results[2][0] > 1.5 * results[1][0] and results[2][5] < 0.01 * settings.chains * settings.samples
-    assert abs(results[2][1]) < 4 / np.sqrt(results[2][3]) and abs(results[2][2] - 1.0) < 0.15
+          f"{np.round(results[1], 3)}, with it {np.round(results[phases], 3)}")
+    assert results[phases][0] > 1.5 * results[1][0] and results[phases][5] < 0.01 * settings.chains * settings.samples
+    assert abs(results[phases][1]) < 4 / np.sqrt(results[phases][3]) and abs(results[phases][2] - 1.0) < 0.15
+
+
+def test_the_leader_map_spreads_a_pile_against_a_bound():
+    """`post.fit_correction`'s map of the leader: points of a leader piled against a wall
+    (exponential, z ≥ 0) come out with the normal's quantiles at `CORRECTION_LEVELS` and close
+    to normal between them; the map is increasing, inverts, and its log-derivative is in
+    the log-determinant (checked against the Jacobian)."""
+    rng = np.random.default_rng(1)
+    lead = rng.exponential(size=4000)
+    z = np.stack([lead, rng.normal(size=4000)], axis=-1)
+    correction = post.fit_correction(z, 0)
+    v = np.asarray(post.v_from_z(correction, jnp.asarray(z)))
+    levels = np.asarray(post.CORRECTION_LEVELS)
+    normal = np.array([statistics.NormalDist().inv_cdf(q) for q in levels])
+    np.testing.assert_allclose(np.quantile(v[:, 0], levels), normal, atol=1e-6)
+    # between the levels, five times closer to the normal's quantiles than the exponential's own
+    inner = np.linspace(0.06, 0.94, 45)
+    off_v = np.abs(np.quantile(v[:, 0], inner) - [statistics.NormalDist().inv_cdf(q) for q in inner]).max()
+    off_z = np.abs(np.quantile((z[:, 0] - z[:, 0].mean()) / z[:, 0].std(), inner) - [statistics.NormalDist().inv_cdf(q) for q in inner]).max()
+    print(f"leader map: largest quantile offset from the normal's, 6-94 %: v {off_v:.3f}, z standardised {off_z:.3f}")
+    assert off_v < 0.2 * off_z
+    grid = jnp.linspace(-6.0, 6.0, 2001)
+    mapped = np.asarray(post.z_from_v(correction, jnp.stack([grid, jnp.zeros_like(grid)], axis=-1))[0][:, 0])
+    assert np.all(np.diff(mapped) > 0)
+    np.testing.assert_allclose(post.z_from_v(correction, jnp.asarray(v))[0], z, atol=1e-10)
+    for point in v[:5]:
+        J = jax.jacfwd(lambda x: post.z_from_v(correction, x)[0])(jnp.asarray(point))
+        np.testing.assert_allclose(post.z_from_v(correction, jnp.asarray(point))[1], np.linalg.slogdet(J)[1], atol=1e-12)
 
 
 _CHAINS_OVER_DEVICES = """

@@ -19,9 +19,9 @@ coupled solve), wrapped as a custom VJP so that blackjax's `jax.grad` uses it.
 The sampler's coordinates follow the posterior's longest ridge as the profile
 likelihood traces it (`trace_ridge`: the leading parameter pinned, the others
 re-optimised) and a second ridge across it (`trace_second_ridge`), straightened by
-shears (`u_from_w`) and whitened (`whitening`), then corrected halfway through the
-warmup where the chains find the posterior's mass off the profile's ridge or of another
-width (`fit_correction`, `z_from_v`). Chains run batched under `vmap`, split over
+shears (`u_from_w`) and whitened (`whitening`), then corrected twice during the
+warmup where the chains find the posterior's mass off the profile's ridge, of another
+width, or piled along it (`fit_correction`, `z_from_v`). Chains run batched under `vmap`, split over
 the devices when there are several (`split_cpu`: the command line makes a CPU device
 per chain where the density is a coupled run, one per core where it is cheap),
 each with its own warmup (Stan's window adaptation of the step size and a dense mass
@@ -62,14 +62,15 @@ class SamplerSettings:
     """NUTS settings: chains (batched with vmap), warmup and kept draws per chain."""
 
     chains: int = 4
-    warmup: int = 200
-    samples: int = 600
+    warmup: int = 300
+    samples: int = 800
     seed: int = 0
     target_acceptance: float = 0.8
     max_tree_depth: int = 6  # at most 2⁶ − 1 leapfrog steps a draw
     warmup_tree_depth: int = 4  # at most 2⁴ − 1 a warmup draw: early steps must not run to the cap
     initial_step_size: float = 0.1  # the warmup's first, in the whitened coordinates z
     jitter: float = 0.5  # spread of the chains' starts around the ridge, in z (`whitening`)
+    corrections: int = 2  # the warmup in corrections + 1 equal parts, the coordinates corrected between them (`correct`)
     pool: bool = True  # the draws use the chains' pooled step size and mass matrix (`pooled_adaptation`)
 
 
@@ -239,13 +240,14 @@ def split_cpu(problem: Problem, chains: int) -> bool:
     return use_cpu_devices(chains if coupled else min(chains, os.cpu_count() or 1))
 
 
-def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50, refit=None):
+def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50, refit=None,
+               phases: int = 2):
     """Warmup then `settings.samples` draws per chain with `nuts_programs`' pair, the
     draws in chunks (one compiled chunk length) with `progress(n)` after each.
-    `refit(path, end, args) -> (args, u)`: the warmup runs in two halves (programs built
-    with `phases=2`), and between them `refit` turns the first half's positions `path`
-    (chains, steps, k) and end points into new args and starts for the second, which
-    starts from the first's inverse mass matrix averaged over the chains. The draws run
+    `refit(path, end, args) -> (args, u)`: the warmup runs in `phases` parts (programs
+    built with as many), and between two parts `refit` turns the earlier part's positions
+    `path` (chains, steps, k) and end points into new args and starts for the next, which
+    starts from the earlier's inverse mass matrix averaged over the chains. The draws run
     with the chains' pooled step size and metric where `settings.pool`
     (`pooled_adaptation`). Returns (position, log density, divergent, acceptance, leapfrog steps) arrays of
     shape (chains, samples, ...), the step sizes, inverse mass matrices and seconds, and
@@ -256,19 +258,20 @@ def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=
     chains = np.shape(u0)[0]
     seconds = {}
     start = time.perf_counter()
-    keys = jax.random.split(key_warmup, 2 * chains)
-    state, step_size, imm, path = jax.block_until_ready(adapt(keys[:chains], jnp.asarray(u0), jnp.asarray(imm0), args))
-    if refit is not None:
+    phases = phases if refit is not None else 1
+    keys = jax.random.split(key_warmup, max(phases, 2) * chains).reshape(-1, chains, 2)
+    state, step_size, imm, path = jax.block_until_ready(adapt(keys[0], jnp.asarray(u0), jnp.asarray(imm0), args))
+    for phase in range(1, phases):
         if progress is not None:
-            progress(settings.warmup // 2)
+            progress(settings.warmup // phases)
         args, u1 = refit(np.asarray(path), np.asarray(state.position), args)
-        imm0 = np.mean(np.asarray(imm), axis=0)  # the second half starts from the first's metric, pooled over the chains
-        state, step_size, imm, _ = jax.block_until_ready(adapt(keys[chains:], jnp.asarray(u1), jnp.asarray(imm0), args))
+        imm0 = np.mean(np.asarray(imm), axis=0)  # the next part starts from this one's metric, pooled over the chains
+        state, step_size, imm, path = jax.block_until_ready(adapt(keys[phase], jnp.asarray(u1), jnp.asarray(imm0), args))
     seconds["warmup"] = time.perf_counter() - start
     if settings.pool:
         step_size, imm = pooled_adaptation(step_size, imm)
     if progress is not None:
-        progress(settings.warmup - (settings.warmup // 2 if refit is not None else 0))
+        progress(settings.warmup - settings.warmup // phases * (phases - 1))
     start = time.perf_counter()
     keys = jax.random.split(key_draws, chains * settings.samples).reshape(chains, settings.samples, -1)
     parts = []
@@ -358,6 +361,15 @@ def _hermite(x, knots, y, slope):
     below = y[0] + slope[0] * (x - knots[0])
     above = y[-1] + slope[-1] * (x - knots[-1])
     return jnp.where(x < knots[0], below, jnp.where(x > knots[-1], above, inside))
+
+
+def _hermite_slope(x, knots, y, slope):
+    """d/dx of `_hermite`."""
+    j = jnp.clip(jnp.searchsorted(knots, x) - 1, 0, knots.shape[0] - 2)
+    h = knots[j + 1] - knots[j]
+    s = jnp.clip((x - knots[j]) / h, 0.0, 1.0)
+    inside = (6 * (s - 1) * s * (y[j] - y[j + 1]) / h + ((3 * s - 4) * s + 1) * slope[j] + (3 * s - 2) * s * slope[j + 1])
+    return jnp.where(x < knots[0], slope[0], jnp.where(x > knots[-1], slope[-1], inside))
 
 
 def _knot_slopes(x, y, xp=np):
@@ -605,16 +617,19 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
 
 
 CORRECTION_BINS = 5  # slices of the leader's coordinate the warmup's correction is measured in
+CORRECTION_LEVELS = (0.05, 0.25, 0.5, 0.75, 0.95)  # the leader's quantiles its own map sends to the normal's
 CORRECTION_SCALE = 10.0  # its widths are kept within [1/10, 10] of z's
 CORRECTION_MIN_POINTS = 100  # warmup positions it needs (chains × a quarter of the warmup); fewer: no correction
 CORRECTION_AUTOCORRELATION = 4.0  # warmup positions per independent one, for the correction's noise
 
 
 class Correction(NamedTuple):
-    """The warmup's correction of `whitening`'s z (`z_from_v`): along the leader's
-    coordinate z_l, the mean m_j and log width ln s_j of every other z_j, as cubic Hermite
-    interpolants through their values at the knots `x` (m straight beyond the end knots,
-    ln s flat at and beyond them). The leader's own columns are zero."""
+    """The warmup's correction of `whitening`'s z (`z_from_v`). The leader's coordinate:
+    z_l = g(v_l), g the monotone cubic Hermite interpolant through (`q_v`, `q_z`) with
+    slopes `q_slope` (straight beyond the end knots). The others, along z_l: the mean
+    m_j and log width ln s_j of every other z_j, as cubic Hermite interpolants through
+    their values at the knots `x` (m straight beyond the end knots, ln s flat at and
+    beyond them). The leader's own columns of m and ln s are zero."""
 
     lead: jax.Array  # () int: the leader's index in z
     x: jax.Array  # (knots,)
@@ -622,47 +637,105 @@ class Correction(NamedTuple):
     m_slope: jax.Array
     log_s: jax.Array
     log_s_slope: jax.Array
+    q_v: jax.Array  # (levels,): normal quantiles
+    q_z: jax.Array  # (levels,): the leader's quantiles in z
+    q_slope: jax.Array
+
+
+def _normal_quantiles(levels) -> np.ndarray:
+    import statistics
+
+    return np.array([statistics.NormalDist().inv_cdf(q) for q in levels])
 
 
 def no_correction(k: int, lead: int = 0, knots: int = CORRECTION_BINS) -> Correction:
     """The identity: z = v."""
     zero = jnp.zeros((knots, k))
-    return Correction(jnp.asarray(lead), jnp.arange(knots, dtype=float), zero, zero, zero, zero)
+    q = jnp.asarray(_normal_quantiles(CORRECTION_LEVELS))
+    return Correction(jnp.asarray(lead), jnp.arange(knots, dtype=float), zero, zero, zero, zero, q, q, jnp.ones_like(q))
 
 
-def _along_leader(correction: Correction, v):
-    """(m, ln s) of `correction` at v's leader coordinate, for v of shape (..., k)."""
+def _along_leader(correction: Correction, x):
+    """(m, ln s) of `correction` at the leader's z, x of shape (...)."""
     c = correction
     curve = jax.vmap(_hermite, in_axes=(None, None, 1, 1), out_axes=-1)
 
     def one(x):
         return curve(x, c.x, c.m, c.m_slope), curve(x, c.x, c.log_s, c.log_s_slope)
 
-    return jnp.vectorize(one, signature="()->(k),(k)")(jnp.take(v, c.lead, axis=-1))
+    return jnp.vectorize(one, signature="()->(k),(k)")(x)
+
+
+def _leader_z(correction: Correction, v_lead):
+    """(z_l, ln g'(v_l)): the leader's map of `Correction`."""
+    c = correction
+    return (_hermite(v_lead, c.q_v, c.q_z, c.q_slope),
+            jnp.log(_hermite_slope(v_lead, c.q_v, c.q_z, c.q_slope)))
+
+
+def _leader_v(correction: Correction, z_lead, iterations: int = 60):
+    """The leader's map inverted: straight beyond the end knots, bisection between them."""
+    c = correction
+    z_lead = jnp.asarray(z_lead)
+    lo, hi = jnp.full_like(z_lead, c.q_v[0]), jnp.full_like(z_lead, c.q_v[-1])
+
+    def halve(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        above = _hermite(mid, c.q_v, c.q_z, c.q_slope) > z_lead
+        return jnp.where(above, lo, mid), jnp.where(above, mid, hi)
+
+    lo, hi = jax.lax.fori_loop(0, iterations, halve, (lo, hi))
+    below = c.q_v[0] + (z_lead - c.q_z[0]) / c.q_slope[0]
+    beyond = c.q_v[-1] + (z_lead - c.q_z[-1]) / c.q_slope[-1]
+    return jnp.where(z_lead < c.q_z[0], below, jnp.where(z_lead > c.q_z[-1], beyond, 0.5 * (lo + hi)))
 
 
 def z_from_v(correction: Correction, v):
-    """z_j = m_j(v_l) + s_j(v_l)·v_j for every j but the leader l (z_l = v_l), and
-    ln|dz/dv| = Σ_j ln s_j(v_l): a triangular map, one to one since every s_j > 0."""
-    m, log_s = _along_leader(correction, v)
-    return m + jnp.exp(log_s) * v, jnp.sum(log_s, axis=-1)
+    """z_l = g(v_l) for the leader l and z_j = m_j(z_l) + s_j(z_l)·v_j for every other
+    j, with ln|dz/dv| = ln g'(v_l) + Σ_j ln s_j(z_l): a triangular map, one to one
+    since g' > 0 and every s_j > 0."""
+    z_lead, log_g = _leader_z(correction, jnp.take(v, correction.lead, axis=-1))
+    m, log_s = _along_leader(correction, z_lead)
+    z = m + jnp.exp(log_s) * v
+    lead = jnp.arange(v.shape[-1]) == correction.lead
+    return jnp.where(lead, z_lead[..., None], z), jnp.sum(log_s, axis=-1) + log_g
 
 
 def v_from_z(correction: Correction, z):
-    """`z_from_v` inverted (the leader's coordinate is the same in both)."""
-    m, log_s = _along_leader(correction, z)
-    return (z - m) * jnp.exp(-log_s)
+    """`z_from_v` inverted."""
+    z = jnp.asarray(z)
+    z_lead = jnp.take(z, correction.lead, axis=-1)
+    m, log_s = _along_leader(correction, z_lead)
+    lead = jnp.arange(z.shape[-1]) == correction.lead
+    return jnp.where(lead, _leader_v(correction, z_lead)[..., None], (z - m) * jnp.exp(-log_s))
+
+
+def _monotone_slopes(x, y) -> np.ndarray:
+    """Knot slopes of increasing data (x, y) that keep its cubic Hermite interpolant
+    increasing (`_knot_slopes` capped at 2.5 times each adjacent secant: Fritsch and
+    Carlson's sufficient condition with room to spare)."""
+    d = np.diff(y) / np.diff(x)
+    s = _knot_slopes(x, y[:, None])[:, 0]
+    s[:-1], s[1:] = np.minimum(s[:-1], 2.5 * d), np.minimum(s[1:], 2.5 * d)
+    return s
 
 
 def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correction:
-    """The correction measured on warmup positions (n, k) in z: the points sorted by
-    their leader coordinate into `bins` slices of equal counts, each slice's mean of the
-    leader coordinate a knot, its means and SDs of the others the values of m and s
-    there (s kept within `CORRECTION_SCALE` of 1). Where the posterior's ridge departs
-    from the profile's (a corner the shears do not follow, a width that changes along
-    the ridge), z given its leader is off centre or not of unit width; v given its
-    leader is, to the extent the slices see it."""
+    """The correction measured on warmup positions (n, k) in z. The leader's map sends
+    the `CORRECTION_LEVELS` quantiles of the points' leader coordinate to those of the
+    standard normal: a posterior piled against a bound along the ridge, which the profile
+    cannot see, is spread over as many units of v as the rest. The others: the points
+    sorted by their leader coordinate into `bins` slices of equal counts, each slice's
+    mean of the leader coordinate a knot, its means and SDs of the others the values of
+    m and s there (s kept within `CORRECTION_SCALE` of 1). Where the posterior's ridge
+    departs from the profile's (a corner the shears do not follow, a width that changes
+    along the ridge), z given its leader is off centre or not of unit width; v given
+    its leader is, to the extent the slices see it."""
     p = np.asarray(positions, float)
+    q_z = np.quantile(p[:, lead], CORRECTION_LEVELS)
+    q_z = q_z[0] + np.maximum.accumulate(q_z - q_z[0]) + 1e-9 * np.arange(len(q_z))  # strictly increasing
+    q_v = _normal_quantiles(CORRECTION_LEVELS)
     slices = np.array_split(np.argsort(p[:, lead], kind="stable"), bins)
     x = np.array([p[i, lead].mean() for i in slices])
     x = x[0] + np.maximum.accumulate(x - x[0]) + 1e-9 * np.arange(bins)  # strictly increasing
@@ -670,8 +743,11 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     # would count the curve's change across a slice as width)
     m = np.array([p[i].mean(axis=0) for i in slices])
     m_slope = _knot_slopes(x, m)
-    curve = np.asarray(_along_leader(Correction(jnp.asarray(lead), jnp.asarray(x), jnp.asarray(m), jnp.asarray(m_slope),
-                                                jnp.zeros_like(m), jnp.zeros_like(m)), jnp.asarray(p))[0])
+    zero = np.zeros_like(m)
+    identity = no_correction(p.shape[1], lead, bins)
+    shape = Correction(jnp.asarray(lead), jnp.asarray(x), jnp.asarray(m), jnp.asarray(m_slope), jnp.asarray(zero),
+                       jnp.asarray(zero), identity.q_v, identity.q_z, identity.q_slope)
+    curve = np.asarray(_along_leader(shape, jnp.asarray(p[:, lead]))[0])
     sd = np.sqrt([np.mean((p[i] - curve[i]) ** 2, axis=0) for i in slices])
     sd = np.clip(sd, 1 / CORRECTION_SCALE, CORRECTION_SCALE)
     log_s = np.log(sd)
@@ -684,14 +760,15 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     m[:, lead], log_s[:, lead] = 0.0, 0.0
     log_s_slope = _knot_slopes(x, log_s)
     log_s_slope[[0, -1]] = 0.0  # flat at the end knots, as beyond them
-    return Correction(jnp.asarray(lead), *(jnp.asarray(a) for a in (x, m, _knot_slopes(x, m), log_s, log_s_slope)))
+    return Correction(jnp.asarray(lead), *(jnp.asarray(a) for a in (x, m, _knot_slopes(x, m), log_s, log_s_slope,
+                                                                    q_v, q_z, _monotone_slopes(q_v, q_z))))
 
 
 @functools.lru_cache(maxsize=4)
 def whitened_programs(problem: Problem, settings: SamplerSettings):
     """`nuts_programs` of the posterior in the corrected coordinates v (`z_from_v` of
-    `whitening`'s z), with args = (`Whitening.args()`, `Correction`); their warmup in two
-    halves where `warmup_refit(settings)` corrects between them."""
+    `whitening`'s z), with args = (`Whitening.args()`, `Correction`); their warmup in
+    `warmup_phases(settings)` parts, `correct` run between them."""
     log_density = log_density_fn(problem)
 
     def in_v(v, args):
@@ -699,7 +776,7 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
         z, log_det = z_from_v(correction, v)
         return log_density(u_from_z(problem.free, white, z)) + log_det
 
-    return nuts_programs(in_v, settings, 1 if warmup_refit(settings) is None else 2)
+    return nuts_programs(in_v, settings, warmup_phases(settings))
 
 
 def u_from_v(problem: Problem, args, v):
@@ -714,38 +791,47 @@ def sampler_args(white: Whitening) -> tuple:
     return white.args(), no_correction(white.c.size, white.ridges[0].leader)
 
 
+def warmup_phases(settings: SamplerSettings) -> int:
+    """The parts the warmup of `whitened_programs` runs in: `settings.corrections` + 1
+    where each part leaves at least `CORRECTION_MIN_POINTS` positions in its second half
+    to measure the correction on, else 1 (the warmup in one piece, uncorrected)."""
+    phases = settings.corrections + 1
+    steps = settings.warmup // phases
+    return phases if settings.corrections > 0 and settings.chains * (steps - steps // 2) >= CORRECTION_MIN_POINTS else 1
+
+
 def warmup_refit(settings: SamplerSettings):
-    """`run_chains`' `refit` for `whitened_programs`: `correct` where the first warmup
-    half leaves at least `CORRECTION_MIN_POINTS` positions to measure the correction on,
-    else None (the warmup in one piece)."""
-    enough = settings.chains * (settings.warmup // 2 - settings.warmup // 4) >= CORRECTION_MIN_POINTS
-    return correct if enough else None
+    """`run_chains`' `refit` for `whitened_programs`: `correct`, or None where the warmup
+    runs in one piece (`warmup_phases`)."""
+    return correct if warmup_phases(settings) > 1 else None
 
 
 def correct(path, end, args):
     """`run_chains`' `refit` for args = (`Whitening.args()`, `Correction`): `refit_correction`."""
     white, old = args
-    correction, v = refit_correction(path, end, int(old.lead))
+    correction, v = refit_correction(path, end, old)
     return (white, correction), v
 
 
-def refit_correction(path, end, lead: int):
-    """The correction (`fit_correction`, leader `lead`) from the second half of the first
-    warmup half's positions `path` (chains, steps, k) in z, and the chains' end points in v."""
+def refit_correction(path, end, old: Correction):
+    """The correction (`fit_correction`, `old`'s leader) from the second half of a warmup
+    part's positions `path` (chains, steps, k) in the coordinates v of the correction
+    `old` it ran with, and the chains' end points in the new v."""
     k = path.shape[-1]
-    correction = fit_correction(path[:, path.shape[1] // 2 :].reshape(-1, k), lead)
-    return correction, np.asarray(v_from_z(correction, jnp.asarray(end)))
+    z = np.asarray(z_from_v(old, jnp.asarray(path[:, path.shape[1] // 2 :].reshape(-1, k)))[0])
+    correction = fit_correction(z, int(old.lead))
+    return correction, np.asarray(v_from_z(correction, z_from_v(old, jnp.asarray(end))[0]))
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
     """NUTS draws of the posterior in `whitening`'s coordinates around `t_best`, the
-    fit's optimum, corrected halfway through the warmup where it is long enough
-    (`warmup_refit`). `progress(n)` is called after each warmup half and after each
+    fit's optimum, corrected between the parts of the warmup where it is long enough
+    (`warmup_phases`). `progress(n)` is called after each warmup part and after each
     chunk of draws."""
     white = whitening(problem, t_best, jacobian, settings.chains, settings.jitter, settings.seed)
     (v, lp, div, acc, steps), step_size, imm, seconds, args = run_chains(
         whitened_programs(problem, settings), white.z0, np.eye(white.c.size), settings, args=sampler_args(white),
-        progress=progress, refit=warmup_refit(settings))
+        progress=progress, refit=warmup_refit(settings), phases=warmup_phases(settings))
     u = np.asarray(u_from_v(problem, args, jnp.asarray(v)))
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
     values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
