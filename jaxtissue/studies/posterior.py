@@ -351,11 +351,17 @@ class Ridge(NamedTuple):
         return np.stack([np.interp(values, x, t[:, j]) for j in range(t.shape[1])], axis=-1)
 
 
-def _hermite(x, knots, y, slope):
-    """The cubic Hermite interpolant of (y, slope) at the knots (C¹), straight beyond them."""
+def _segment(x, knots):
+    """(j, h, s): the knot interval [knots[j], knots[j + 1]] of x, its width, and x's
+    place in it (0 to 1, clipped)."""
     j = jnp.clip(jnp.searchsorted(knots, x) - 1, 0, knots.shape[0] - 2)
     h = knots[j + 1] - knots[j]
-    s = jnp.clip((x - knots[j]) / h, 0.0, 1.0)
+    return j, h, jnp.clip((x - knots[j]) / h, 0.0, 1.0)
+
+
+def _hermite(x, knots, y, slope):
+    """The cubic Hermite interpolant of (y, slope) at the knots (C¹), straight beyond them."""
+    j, h, s = _segment(x, knots)
     inside = (((2 * s - 3) * s**2 + 1) * y[j] + ((s - 2) * s + 1) * s * h * slope[j]
               + (3 - 2 * s) * s**2 * y[j + 1] + (s - 1) * s**2 * h * slope[j + 1])
     below = y[0] + slope[0] * (x - knots[0])
@@ -365,9 +371,7 @@ def _hermite(x, knots, y, slope):
 
 def _hermite_slope(x, knots, y, slope):
     """d/dx of `_hermite`."""
-    j = jnp.clip(jnp.searchsorted(knots, x) - 1, 0, knots.shape[0] - 2)
-    h = knots[j + 1] - knots[j]
-    s = jnp.clip((x - knots[j]) / h, 0.0, 1.0)
+    j, h, s = _segment(x, knots)
     inside = (6 * (s - 1) * s * (y[j] - y[j + 1]) / h + ((3 * s - 4) * s + 1) * slope[j] + (3 * s - 2) * s * slope[j + 1])
     return jnp.where(x < knots[0], slope[0], jnp.where(x > knots[-1], slope[-1], inside))
 
@@ -619,7 +623,7 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
 CORRECTION_BINS = 5  # slices of the leader's coordinate the warmup's correction is measured in
 CORRECTION_LEVELS = (0.05, 0.25, 0.5, 0.75, 0.95)  # the leader's quantiles its own map sends to the normal's
 CORRECTION_SCALE = 10.0  # its widths are kept within [1/10, 10] of z's
-CORRECTION_MIN_POINTS = 100  # warmup positions it needs (chains × a quarter of the warmup); fewer: no correction
+CORRECTION_MIN_POINTS = 100  # warmup positions it needs (chains × half a warmup part); fewer: no correction
 CORRECTION_AUTOCORRELATION = 4.0  # warmup positions per independent one, for the correction's noise
 
 
@@ -711,6 +715,11 @@ def v_from_z(correction: Correction, z):
     return jnp.where(lead, _leader_v(correction, z_lead)[..., None], (z - m) * jnp.exp(-log_s))
 
 
+def _increasing(a) -> np.ndarray:
+    """Knot positions a made strictly increasing (ties and reversals lifted by 1e-9 steps)."""
+    return a[0] + np.maximum.accumulate(a - a[0]) + 1e-9 * np.arange(len(a))
+
+
 def _monotone_slopes(x, y) -> np.ndarray:
     """Knot slopes of increasing data (x, y) that keep its cubic Hermite interpolant
     increasing (`_knot_slopes` capped at 2.5 times each adjacent secant: Fritsch and
@@ -733,20 +742,15 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     along the ridge), z given its leader is off centre or not of unit width; v given
     its leader is, to the extent the slices see it."""
     p = np.asarray(positions, float)
-    q_z = np.quantile(p[:, lead], CORRECTION_LEVELS)
-    q_z = q_z[0] + np.maximum.accumulate(q_z - q_z[0]) + 1e-9 * np.arange(len(q_z))  # strictly increasing
+    q_z = _increasing(np.quantile(p[:, lead], CORRECTION_LEVELS))
     q_v = _normal_quantiles(CORRECTION_LEVELS)
     slices = np.array_split(np.argsort(p[:, lead], kind="stable"), bins)
-    x = np.array([p[i, lead].mean() for i in slices])
-    x = x[0] + np.maximum.accumulate(x - x[0]) + 1e-9 * np.arange(bins)  # strictly increasing
+    x = _increasing(np.array([p[i, lead].mean() for i in slices]))
     # the means, then the widths about the mean curve (not about each slice's mean, which
     # would count the curve's change across a slice as width)
     m = np.array([p[i].mean(axis=0) for i in slices])
     m_slope = _knot_slopes(x, m)
-    zero = np.zeros_like(m)
-    identity = no_correction(p.shape[1], lead, bins)
-    shape = Correction(jnp.asarray(lead), jnp.asarray(x), jnp.asarray(m), jnp.asarray(m_slope), jnp.asarray(zero),
-                       jnp.asarray(zero), identity.q_v, identity.q_z, identity.q_slope)
+    shape = no_correction(p.shape[1], lead, bins)._replace(x=jnp.asarray(x), m=jnp.asarray(m), m_slope=jnp.asarray(m_slope))
     curve = np.asarray(_along_leader(shape, jnp.asarray(p[:, lead]))[0])
     sd = np.sqrt([np.mean((p[i] - curve[i]) ** 2, axis=0) for i in slices])
     sd = np.clip(sd, 1 / CORRECTION_SCALE, CORRECTION_SCALE)
