@@ -23,6 +23,7 @@ import math
 import os
 import re
 import sys
+import threading
 import warnings
 
 import numpy as np
@@ -759,18 +760,31 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"jaxtissue: warning: {message}", file=sys.stderr)
 
 
+_SAY = threading.Lock()  # the command's last line: its error, or the main thread's word on a signal
+
+
+def _say(line: str) -> None:
+    """Print the command's error line, unless a signal is ending the process (its main
+    thread then says so, and an error that the ending caused is not the user's news)."""
+    from .io import ending
+
+    with _SAY:
+        if not ending():
+            print(line, file=sys.stderr, flush=True)
+
+
 def _run(args) -> int:
     """The command, its errors as one line and an exit code."""
     try:
         return args.func(args)
     except InputError as err:
-        print(f"jaxtissue: error: {as_flags(str(err))}", file=sys.stderr)
+        _say(f"jaxtissue: error: {as_flags(str(err))}")
         return 2
     except KeyboardInterrupt:
-        print("jaxtissue: interrupted; nothing was written", file=sys.stderr)
+        _say("jaxtissue: interrupted; nothing was written")
         return 130
     except RunError as err:
-        print(f"jaxtissue: error: {err}. Nothing was written.", file=sys.stderr)
+        _say(f"jaxtissue: error: {err}. Nothing was written.")
         return 1
     except BrokenPipeError:  # e.g. `jaxtissue params | head`
         sys.stderr.close()
@@ -778,7 +792,7 @@ def _run(args) -> int:
     except Exception as err:  # a bug, not the user's mistake: still one line
         if os.environ.get("JAXTISSUE_DEBUG"):
             raise
-        print(f"jaxtissue: internal error: {type(err).__name__}: {err} (set JAXTISSUE_DEBUG=1 for the traceback)", file=sys.stderr)
+        _say(f"jaxtissue: internal error: {type(err).__name__}: {err} (set JAXTISSUE_DEBUG=1 for the traceback)")
         return 1
 
 
@@ -792,7 +806,6 @@ def _interruptible(run, args) -> int:
     SIGTERM (143) are answered here within a fraction of a second, with one line; the
     unfinished output folders are removed and the process ends at once."""
     import signal
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         return run(args)
@@ -814,6 +827,7 @@ def _interruptible(run, args) -> int:
         from .io import release_outputs
 
         name, code = ("SIGINT", 130) if isinstance(err, KeyboardInterrupt) else ("SIGTERM", 143)
+        _SAY.acquire()  # held until the process ends: the worker's errors from here on are not printed
         release_outputs(ending=True)
         kept = _kept_checkpoint(args)
         bars = "tqdm" in sys.modules and len(getattr(sys.modules["tqdm"].tqdm, "_instances", ())) > 0

@@ -213,6 +213,11 @@ def lock_output(out, argument: str = "out") -> None:
     _LOCKS[lock] = fd
 
 
+def ending() -> bool:
+    """Whether `release_outputs(ending=True)` ran: the process is ending on a signal."""
+    return bool(_ENDING)
+
+
 def release_outputs(ending: bool = False) -> None:
     """Remove the temporary folders of unfinished outputs and release the locks
     (`lock_output`): what an interrupted command leaves is what it had before.
