@@ -715,6 +715,11 @@ def v_from_z(correction: Correction, z):
     return jnp.where(lead, _leader_v(correction, z_lead)[..., None], (z - m) * jnp.exp(-log_s))
 
 
+# compiled once for the warmup's refits (eager, their first calls take seconds)
+_z_from_v, _v_from_z = jax.jit(z_from_v), jax.jit(v_from_z)
+_mean_curve = jax.jit(lambda correction, x: _along_leader(correction, x)[0])
+
+
 def _increasing(a) -> np.ndarray:
     """Knot positions a made strictly increasing (ties and reversals lifted by 1e-9 steps)."""
     return a[0] + np.maximum.accumulate(a - a[0]) + 1e-9 * np.arange(len(a))
@@ -751,7 +756,7 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     m = np.array([p[i].mean(axis=0) for i in slices])
     m_slope = _knot_slopes(x, m)
     shape = no_correction(p.shape[1], lead, bins)._replace(x=jnp.asarray(x), m=jnp.asarray(m), m_slope=jnp.asarray(m_slope))
-    curve = np.asarray(_along_leader(shape, jnp.asarray(p[:, lead]))[0])
+    curve = np.asarray(_mean_curve(shape, jnp.asarray(p[:, lead])))
     sd = np.sqrt([np.mean((p[i] - curve[i]) ** 2, axis=0) for i in slices])
     sd = np.clip(sd, 1 / CORRECTION_SCALE, CORRECTION_SCALE)
     log_s = np.log(sd)
@@ -822,9 +827,9 @@ def refit_correction(path, end, old: Correction):
     part's positions `path` (chains, steps, k) in the coordinates v of the correction
     `old` it ran with, and the chains' end points in the new v."""
     k = path.shape[-1]
-    z = np.asarray(z_from_v(old, jnp.asarray(path[:, path.shape[1] // 2 :].reshape(-1, k)))[0])
+    z = np.asarray(_z_from_v(old, jnp.asarray(path[:, path.shape[1] // 2 :].reshape(-1, k)))[0])
     correction = fit_correction(z, int(old.lead))
-    return correction, np.asarray(v_from_z(correction, z_from_v(old, jnp.asarray(end))[0]))
+    return correction, np.asarray(_v_from_z(correction, _z_from_v(old, jnp.asarray(end))[0]))
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
