@@ -497,8 +497,8 @@ def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
 
 def test_the_leader_map_spreads_a_pile_against_a_bound():
     """`post.fit_correction`'s map of the leader: points of a leader piled against a wall
-    (exponential, z ≥ 0) come out with the normal's quantiles at `CORRECTION_LEVELS` and close
-    to normal between them; the map is increasing, inverts, and its log-derivative is in
+    (exponential, z ≥ 0) come out with the normal's quantiles at `CORRECTION_LEVELS` (up
+    to the knots' small shrinkage) and close to normal between them; the map is increasing, inverts, and its log-derivative is in
     the log-determinant (checked against the Jacobian)."""
     rng = np.random.default_rng(1)
     lead = rng.exponential(size=4000)
@@ -507,7 +507,7 @@ def test_the_leader_map_spreads_a_pile_against_a_bound():
     v = np.asarray(post.v_from_z(correction, jnp.asarray(z)))
     levels = np.asarray(post.CORRECTION_LEVELS)
     normal = np.array([statistics.NormalDist().inv_cdf(q) for q in levels])
-    np.testing.assert_allclose(np.quantile(v[:, 0], levels), normal, atol=1e-6)
+    np.testing.assert_allclose(np.quantile(v[:, 0], levels), normal, atol=0.02)  # less the knots' shrinkage: 4000 points
     # between the levels, five times closer to the normal's quantiles than the exponential's own
     inner = np.linspace(0.06, 0.94, 45)
     off_v = np.abs(np.quantile(v[:, 0], inner) - [statistics.NormalDist().inv_cdf(q) for q in inner]).max()
@@ -521,6 +521,24 @@ def test_the_leader_map_spreads_a_pile_against_a_bound():
     for point in v[:5]:
         J = jax.jacfwd(lambda x: post.z_from_v(correction, x)[0])(jnp.asarray(point))
         np.testing.assert_allclose(post.z_from_v(correction, jnp.asarray(point))[1], np.linalg.slogdet(J)[1], atol=1e-12)
+
+
+def test_the_leader_map_keeps_what_its_noise_cannot_explain():
+    """The leader's knots (`post.fit_correction`): of 200 points of a standard normal
+    leader, the normal's quantiles themselves (the points' own are off by their noise,
+    which is not worth a map); of 800 points of a leader shifted by 2 and wider by 1.5,
+    the points' own quantiles, little shrunk."""
+    rng = np.random.default_rng(2)
+    normal = np.array([statistics.NormalDist().inv_cdf(q) for q in post.CORRECTION_LEVELS])
+    z = rng.normal(size=(200, 3))
+    own = np.quantile(z[:, 0], post.CORRECTION_LEVELS)
+    assert np.abs(own - normal).max() > 0.05  # what a map of the points' own quantiles would move
+    np.testing.assert_allclose(post.fit_correction(z, 0).q_z, normal, atol=1e-8)
+    z = rng.normal(size=(800, 3))
+    z[:, 0] = 2.0 + 1.5 * z[:, 0]
+    own = np.quantile(z[:, 0], post.CORRECTION_LEVELS)
+    np.testing.assert_allclose(post.fit_correction(z, 0).q_z, own, atol=0.1)
+    assert np.all(np.abs(post.fit_correction(z, 0).q_z - normal) > 0.5)
 
 
 _CHAINS_OVER_DEVICES = """

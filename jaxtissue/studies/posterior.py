@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import pathlib
 import time
 from typing import NamedTuple
@@ -735,20 +736,36 @@ def _monotone_slopes(x, y) -> np.ndarray:
     return s
 
 
+def _leader_quantiles(x, independent: float) -> np.ndarray:
+    """The `CORRECTION_LEVELS` quantiles of the leader's coordinate x, each shrunk towards
+    the standard normal's by what its noise cannot tell from them (James–Stein): the
+    quantile at level q of n = `independent` points of spread σ has variance
+    q(1 − q)σ² / (n φ(z_q)²); σ measured between the outer levels."""
+    normal = _normal_quantiles(CORRECTION_LEVELS)
+    levels = np.asarray(CORRECTION_LEVELS)
+    raw = np.quantile(x, levels)
+    sigma = (raw[-1] - raw[0]) / (normal[-1] - normal[0])
+    density = np.exp(-0.5 * normal**2) / math.sqrt(2 * math.pi)
+    noise = levels * (1 - levels) * sigma**2 / (independent * density**2)
+    off = raw - normal
+    off *= np.clip(1.0 - noise / np.maximum(off**2, 1e-300), 0.0, 1.0)
+    return _increasing(normal + off)
+
+
 def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correction:
     """The correction measured on warmup positions (n, k) in z. The leader's map sends
     the `CORRECTION_LEVELS` quantiles of the points' leader coordinate to those of the
-    standard normal: a posterior piled against a bound along the ridge, which the profile
-    cannot see, is spread over as many units of v as the rest. The others: the points
-    sorted by their leader coordinate into `bins` slices of equal counts, each slice's
-    mean of the leader coordinate a knot, its means and SDs of the others the values of
-    m and s there (s kept within `CORRECTION_SCALE` of 1). Where the posterior's ridge
+    standard normal (`_leader_quantiles`): a posterior piled against a bound along the
+    ridge, which the profile cannot see, is spread over as many units of v as the rest.
+    The others: the points sorted by their leader coordinate into `bins` slices of equal
+    counts, each slice's mean of the leader coordinate a knot, its means and SDs of the
+    others the values of m and s there (s kept within `CORRECTION_SCALE` of 1). Where the posterior's ridge
     departs from the profile's (a corner the shears do not follow, a width that changes
     along the ridge), z given its leader is off centre or not of unit width; v given
     its leader is, to the extent the slices see it."""
     p = np.asarray(positions, float)
-    q_z = _increasing(np.quantile(p[:, lead], CORRECTION_LEVELS))
     q_v = _normal_quantiles(CORRECTION_LEVELS)
+    q_z = _leader_quantiles(p[:, lead], len(p) / CORRECTION_AUTOCORRELATION)
     slices = np.array_split(np.argsort(p[:, lead], kind="stable"), bins)
     x = _increasing(np.array([p[i, lead].mean() for i in slices]))
     # the means, then the widths about the mean curve (not about each slice's mean, which
