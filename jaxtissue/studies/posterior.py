@@ -866,15 +866,17 @@ def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = Sampl
 
 def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndarray:
     """The model's value of each observation at every draw: t of shape (..., k) →
-    (..., observations), `batch` draws at a time under vmap."""
+    (..., observations), at most `batch` draws at a time under vmap, each batch split
+    over the devices (`sweep.even_batches`)."""
     flat = np.asarray(t).reshape(-1, np.shape(t)[-1])
-    r = np.concatenate(_in_batches(_batched_residuals(problem), flat, batch, progress))
+    size = even_batches(len(flat), batch)
+    r = np.concatenate(_in_batches(_batched_residuals(problem, size), flat, size, progress))
     return problem.model_from_residuals(r).reshape(*np.shape(t)[:-1], -1)
 
 
 @functools.lru_cache(maxsize=4)
-def _batched_residuals(problem: Problem):
-    return jax.jit(jax.vmap(problem.residuals))
+def _batched_residuals(problem: Problem, size: int):
+    return jax.jit(vmap_over_devices(problem.residuals, size))
 
 
 def _in_batches(run, rows: np.ndarray, batch: int, progress=None) -> list:
