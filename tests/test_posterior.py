@@ -340,15 +340,29 @@ def _sheet_moments():
     return np.array([0.0, a2 + 0.5 * s2, 0.0]), np.sqrt([a2, a4 - a2**2 + a2 * s2 + 0.25 * (s4 - s2**2) + 0.03**2, s2])
 
 
-def test_sample_straightens_a_twisted_sheet():
-    """Two shears (`post.trace_ridge`, then `post.trace_second_ridge` traced at three
-    positions of the leader) make the sheet b = a² + a·s + s²/2 flat: means and SDs
-    against quadrature, ESS, leapfrog steps a draw. One position alone leaves the twist
-    a·s: b off by up to ±1.5, 50 of the ridge's widths."""
+def _twisted_sheet_whitening():
     problem = _TwistedSheet()
     t_best = jnp.zeros(3)
     J = jax.jacfwd(problem.residuals)(t_best)
-    white = post.whitening(problem, t_best, J)
+    return problem, t_best, J, post.whitening(problem, t_best, J)
+
+
+def test_whitening_traces_both_ridges_of_a_twisted_sheet():
+    """`post.whitening` on the sheet b = a² + a·s + s²/2: the first ridge along s, the
+    second along a traced at three positions of s (one position alone leaves the twist
+    a·s: b off by up to ±1.5, 50 of the ridge's widths). Sampling in these coordinates:
+    the slow test below; the two shears' inverse and gradient:
+    `test_ridge_coordinates_invert_and_differentiate`."""
+    *_, white = _twisted_sheet_whitening()
+    assert [(r.leader, r.held, len(r.at)) for r in white.ridges] == [(2, 2, 1), (0, 2, 3)]
+
+
+@pytest.mark.slow  # the default run: test_whitening_traces_both_ridges_of_a_twisted_sheet, test_sample_straightens_a_curved_ridge
+def test_sample_straightens_a_twisted_sheet():
+    """Two shears (`post.trace_ridge`, then `post.trace_second_ridge` traced at three
+    positions of the leader) make the sheet b = a² + a·s + s²/2 flat: means and SDs
+    against quadrature, ESS, leapfrog steps a draw."""
+    problem, t_best, J, white = _twisted_sheet_whitening()
     assert [(r.leader, r.held, len(r.at)) for r in white.ridges] == [(2, 2, 1), (0, 2, 3)]
     draws = post.sample(problem, t_best, J, post.SamplerSettings(chains=4, warmup=200, samples=250))
     az = post.import_arviz()

@@ -811,6 +811,11 @@ def u_from_v(problem: Problem, args, v):
     return u_from_z(problem.free, white, z_from_v(correction, v)[0])
 
 
+# compiled for `sample`'s conversion of the draws (eager, each small op compiles on its own)
+_u_from_v = jax.jit(u_from_v, static_argnums=0)
+_values_from_t = jax.jit(lambda problem, t: jax.vmap(jax.vmap(problem.values_from_t))(t), static_argnums=0)
+
+
 def sampler_args(white: Whitening) -> tuple:
     """The args of `whitened_programs` before the warmup's correction: (`white.args()`,
     `no_correction`)."""
@@ -858,9 +863,9 @@ def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = Sampl
     (v, lp, div, acc, steps), step_size, imm, seconds, args = run_chains(
         whitened_programs(problem, settings), white.z0, np.eye(white.c.size), settings, args=sampler_args(white),
         progress=progress, refit=warmup_refit(settings), phases=warmup_phases(settings))
-    u = np.asarray(u_from_v(problem, args, jnp.asarray(v)))
+    u = np.asarray(_u_from_v(problem, args, jnp.asarray(v)))
     t = np.asarray(t_from_u(problem.free, jnp.asarray(u)))
-    values = np.asarray(jax.vmap(jax.vmap(problem.values_from_t))(jnp.asarray(t)))
+    values = np.asarray(_values_from_t(problem, jnp.asarray(t)))
     return Draws(u, t, values, lp, div, acc, steps, step_size, imm, seconds)
 
 
