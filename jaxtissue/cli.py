@@ -30,7 +30,7 @@ import numpy as np
 
 from .cache import enable_compilation_cache, use_fast_compilation
 from .grid import DEFAULT_SHAPES
-from .io import InputError, RunError
+from .io import InputError, RunError, ending
 from .limits import MAX_STEPS
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S
 
@@ -766,8 +766,6 @@ _SAY = threading.Lock()  # the command's last line: its error, or the main threa
 def _say(line: str) -> None:
     """Print the command's error line, unless a signal is ending the process (its main
     thread then says so, and an error that the ending caused is not the user's news)."""
-    from .io import ending
-
     with _SAY:
         if not ending():
             print(line, file=sys.stderr, flush=True)

@@ -512,8 +512,9 @@ def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
 def test_the_leader_map_spreads_a_pile_against_a_bound():
     """`post.fit_correction`'s map of the leader: points of a leader piled against a wall
     (exponential, z ≥ 0) come out with the normal's quantiles at `CORRECTION_LEVELS` (up
-    to the knots' small shrinkage) and close to normal between them; the map is increasing, inverts, and its log-derivative is in
-    the log-determinant (checked against the Jacobian)."""
+    to the knots' small shrinkage) and close to normal between them; the map is
+    increasing, inverts, and its log-derivative is in the log-determinant (checked
+    against the Jacobian)."""
     rng = np.random.default_rng(1)
     lead = rng.exponential(size=4000)
     z = np.stack([lead, rng.normal(size=4000)], axis=-1)
@@ -551,8 +552,9 @@ def test_the_leader_map_keeps_what_its_noise_cannot_explain():
     z = rng.normal(size=(800, 3))
     z[:, 0] = 2.0 + 1.5 * z[:, 0]
     own = np.quantile(z[:, 0], post.CORRECTION_LEVELS)
-    np.testing.assert_allclose(post.fit_correction(z, 0).q_z, own, atol=0.1)
-    assert np.all(np.abs(post.fit_correction(z, 0).q_z - normal) > 0.5)
+    q_z = post.fit_correction(z, 0).q_z
+    np.testing.assert_allclose(q_z, own, atol=0.1)
+    assert np.all(np.abs(q_z - normal) > 0.5)
 
 
 _CHAINS_OVER_DEVICES = """

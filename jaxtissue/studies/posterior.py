@@ -36,6 +36,7 @@ import functools
 import json
 import math
 import pathlib
+import statistics
 import time
 from typing import NamedTuple
 
@@ -623,6 +624,7 @@ def whitening(problem: Problem, t_best, jacobian, chains: int = 4, jitter: float
 
 CORRECTION_BINS = 5  # slices of the leader's coordinate the warmup's correction is measured in
 CORRECTION_LEVELS = (0.05, 0.25, 0.5, 0.75, 0.95)  # the leader's quantiles its own map sends to the normal's
+CORRECTION_NORMAL = np.array([statistics.NormalDist().inv_cdf(q) for q in CORRECTION_LEVELS])  # the normal's, there
 CORRECTION_SCALE = 10.0  # its widths are kept within [1/10, 10] of z's
 CORRECTION_MIN_POINTS = 100  # warmup positions it needs (chains × half a warmup part); fewer: no correction
 CORRECTION_AUTOCORRELATION = 4.0  # warmup positions per independent one, for the correction's noise
@@ -647,16 +649,10 @@ class Correction(NamedTuple):
     q_slope: jax.Array
 
 
-def _normal_quantiles(levels) -> np.ndarray:
-    import statistics
-
-    return np.array([statistics.NormalDist().inv_cdf(q) for q in levels])
-
-
 def no_correction(k: int, lead: int = 0, knots: int = CORRECTION_BINS) -> Correction:
     """The identity: z = v."""
     zero = jnp.zeros((knots, k))
-    q = jnp.asarray(_normal_quantiles(CORRECTION_LEVELS))
+    q = jnp.asarray(CORRECTION_NORMAL)
     return Correction(jnp.asarray(lead), jnp.arange(knots, dtype=float), zero, zero, zero, zero, q, q, jnp.ones_like(q))
 
 
@@ -741,8 +737,7 @@ def _leader_quantiles(x, independent: float) -> np.ndarray:
     the standard normal's by what its noise cannot tell from them (James–Stein): the
     quantile at level q of n = `independent` points of spread σ has variance
     q(1 − q)σ² / (n φ(z_q)²); σ measured between the outer levels."""
-    normal = _normal_quantiles(CORRECTION_LEVELS)
-    levels = np.asarray(CORRECTION_LEVELS)
+    normal, levels = CORRECTION_NORMAL, np.asarray(CORRECTION_LEVELS)
     raw = np.quantile(x, levels)
     sigma = (raw[-1] - raw[0]) / (normal[-1] - normal[0])
     density = np.exp(-0.5 * normal**2) / math.sqrt(2 * math.pi)
@@ -759,12 +754,11 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     ridge, which the profile cannot see, is spread over as many units of v as the rest.
     The others: the points sorted by their leader coordinate into `bins` slices of equal
     counts, each slice's mean of the leader coordinate a knot, its means and SDs of the
-    others the values of m and s there (s kept within `CORRECTION_SCALE` of 1). Where the posterior's ridge
-    departs from the profile's (a corner the shears do not follow, a width that changes
-    along the ridge), z given its leader is off centre or not of unit width; v given
-    its leader is, to the extent the slices see it."""
+    others the values of m and s there (s kept within `CORRECTION_SCALE` of 1). Where
+    the posterior's ridge departs from the profile's (a corner the shears do not
+    follow, a width that changes along the ridge), z given its leader is off centre or
+    not of unit width; v given its leader is, to the extent the slices see it."""
     p = np.asarray(positions, float)
-    q_v = _normal_quantiles(CORRECTION_LEVELS)
     q_z = _leader_quantiles(p[:, lead], len(p) / CORRECTION_AUTOCORRELATION)
     slices = np.array_split(np.argsort(p[:, lead], kind="stable"), bins)
     x = _increasing(np.array([p[i, lead].mean() for i in slices]))
@@ -787,7 +781,8 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
     log_s_slope = _knot_slopes(x, log_s)
     log_s_slope[[0, -1]] = 0.0  # flat at the end knots, as beyond them
     return Correction(jnp.asarray(lead), *(jnp.asarray(a) for a in (x, m, _knot_slopes(x, m), log_s, log_s_slope,
-                                                                    q_v, q_z, _monotone_slopes(q_v, q_z))))
+                                                                    CORRECTION_NORMAL, q_z,
+                                                                    _monotone_slopes(CORRECTION_NORMAL, q_z))))
 
 
 @functools.lru_cache(maxsize=4)
