@@ -1,9 +1,10 @@
 """The full flex run (1 Hz, 5 mm, 2.0e6 s) on the default grids: jaxtissue versus the
 same coupled scheme with SciPy for the growth solves, in one run.
 
-Reports: compile time; forward wall time split into beam cycles and growth; the
-gradient of 3-week collagen with respect to all parameters and the protocol (time and
-peak memory relative to the forward run, from XLA's memory analysis), keeping every
+Reports: compile time in JAX's stages (tracing, lowering, XLA) and the programs' sizes
+(HLO instructions); forward wall time split into beam cycles and growth; the gradient
+of 3-week collagen with respect to all parameters and the protocol (time and peak
+memory relative to the forward run, from XLA's memory analysis), keeping every
 coupling interval's state or, nested, ~√n of them (in float64 or float32); and the SciPy
 baseline — per growth interval the same jitted beam cycle, the same lumped dispersion,
 then `solve_ivp(BDF)` with the 2-D Jacobian's sparsity pattern (a NumPy right-hand
@@ -116,6 +117,25 @@ def timed(fn, *args, repeat=1):
     return out, best
 
 
+def staged(fn, *args):
+    """`fn` (jitted) compiled for `args` in JAX's stages: (compiled, seconds of tracing,
+    lowering and XLA's compilation, HLO instructions before XLA's passes)."""
+    t0 = time.perf_counter()
+    traced = fn.trace(*args)
+    t1 = time.perf_counter()
+    lowered = traced.lower()
+    t2 = time.perf_counter()
+    compiled = lowered.compile()
+    t3 = time.perf_counter()
+    instructions = sum(" = " in line for line in lowered.as_text(dialect="hlo").splitlines())
+    return compiled, (t1 - t0, t2 - t1, t3 - t2), instructions
+
+
+def stages(seconds) -> str:
+    trace, lower, xla = seconds
+    return f"{trace + lower + xla:.1f} s: tracing {trace:.1f}, lowering {lower:.1f}, XLA {xla:.1f}"
+
+
 def piece_compiles(params, protocol, y):
     """Seconds of (tracing and lowering, XLA) for the gradient of one loading cycle's
     lumped transport and of one coupling interval's growth solve, each on its own: what
@@ -154,10 +174,10 @@ def main(quick=False):
           f"{GRID.nx} x {GRID.ny}, beam {BEAM.n_segments} segments x {BEAM.steps_per_cycle} steps per cycle; XLA's "
           + ("classic CPU fusion emitter (the command line's setting)" if FAST else "default CPU emitters"))
 
-    forward = jax.jit(lambda p, q: jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM))
-    _, t_first = timed(forward, params, protocol)
+    forward, fwd_stages, fwd_size = staged(jax.jit(lambda p, q: jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM)), params, protocol)
+    timed(forward, params, protocol)
     result, t_fwd = timed(forward, params, protocol, repeat=3)
-    print(f"\nforward: {t_fwd:.1f} s after compilation (compile + first run {t_first:.1f} s, compile ~{t_first - t_fwd:.1f} s; goal <= 4 s)")
+    print(f"\nforward: {t_fwd:.1f} s after compilation; compile {stages(fwd_stages)} (goal <= 4 s); {fwd_size} HLO instructions")
 
     # one coupling step's beam work: the cycle and its lumped dispersion on the growth grid
     transport_of = jax.jit(lambda y, p, q: lumped_transport(flex_cycle(y, p, q, GRID, BEAM)[1], p, GRID, BEAM, "dispersive", "centroid").dispersion)
@@ -183,20 +203,21 @@ def main(quick=False):
         r = jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM, options=options)
         return r.collagen_mg_per_g[r.index(jt.THREE_WEEKS_S)] if t_end >= jt.THREE_WEEKS_S else r.collagen_mg_per_g[-1]
 
-    def memory(fn):
-        analysis = fn.lower(params, protocol).compile().memory_analysis()
+    def memory(compiled):
+        analysis = compiled.memory_analysis()
         return analysis.temp_size_in_bytes + analysis.output_size_in_bytes + analysis.argument_size_in_bytes
 
     m_fwd = memory(forward)
     variants = (("every interval's state kept", jt.SolverOptions()),
                 ("nest_intervals (~sqrt(n) states kept)", jt.SolverOptions(nest_intervals=True)),
                 ("nest_intervals, kept in float32", jt.SolverOptions(nest_intervals=True, store_float32=True)))
-    grads, compile_s, values = [], [], []
+    grads, compile_s, sizes, values = [], [], [], []
     for _, options in variants:
-        grads.append(jax.jit(jax.grad(lambda p, q, o=options: collagen(p, q, o), argnums=(0, 1))))
-        value, seconds = timed(grads[-1], params, protocol)
-        values.append(jax.flatten_util.ravel_pytree(value)[0])
+        compiled, seconds, size = staged(jax.jit(jax.grad(lambda p, q, o=options: collagen(p, q, o), argnums=(0, 1))), params, protocol)
+        grads.append(compiled)
         compile_s.append(seconds)
+        sizes.append(size)
+        values.append(jax.flatten_util.ravel_pytree(timed(compiled, params, protocol)[0])[0])
     # forward and gradients timed in turn, best of three each: the ratios compare runs
     # made under the same machine load
     best = [np.inf] * (1 + len(grads))
@@ -206,11 +227,12 @@ def main(quick=False):
     t_fwd = best[0]
     print(f"gradient of 3-week collagen w.r.t. all {len(jt.paper_parameters().as_dict())} parameters and the protocol "
           f"(goals: < 5x forward time, < 3x forward memory; forward {t_fwd:.2f} s and {m_fwd / 2**20:.1f} MiB of XLA buffers):")
-    for (label, _), grad, t_grad, t_gfirst, g in zip(variants, grads, best[1:], compile_s, values):
+    for (label, _), grad, t_grad, seconds, size, g in zip(variants, grads, best[1:], compile_s, sizes, values):
         m_grad = memory(grad)
         differs = float(jnp.max(jnp.abs(g - values[0])) / jnp.max(jnp.abs(values[0])))
         print(f"  {label}: {t_grad:.1f} s = {t_grad / t_fwd:.1f}x forward, memory {m_grad / 2**20:.1f} MiB = "
-              f"{m_grad / m_fwd:.1f}x; compile ~{t_gfirst - t_grad:.0f} s (goal <= 10 s); gradient differs from the first by {differs:.0e} (max, relative)")
+              f"{m_grad / m_fwd:.1f}x; compile {stages(seconds)} (goal <= 10 s), {size} HLO instructions = "
+              f"{size / fwd_size:.1f}x forward's; gradient differs from the first by {differs:.0e} (max, relative)")
     pieces = piece_compiles(params, protocol, result.final)
     print("  the pieces' gradients compiled on their own (tracing + XLA): "
           + "; ".join(f"{name} {a + b:.1f} s ({a:.1f} + {b:.1f})" for name, (a, b) in pieces.items()))
