@@ -18,7 +18,7 @@ from .beam import BeamGrid, loading_cycle
 from .coupling import beam_from_ecm, lumped_transport, with_rule_constant
 from .grid import Grid
 from .growth import GrowthModel, has_cell_transport
-from .numerics import ROS34PW2, ReproducibleSteps, Rescaled, line_sweeps, replayed_scan
+from .numerics import ROS34PW2, ReproducibleSteps, Rescaled, Stacked, line_sweeps, replayed_scan, stack
 from .params import Params, concrete_value, nondimensionalise
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
 from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
@@ -107,16 +107,19 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     checkpointed reverse pass (`checkpoints`, unless `options` sets them).
 
     The solve runs in the unit time s = (t − t0)/(t1 − t0) (`numerics.Rescaled`; `sol.ts`
-    is in s): diffrax's time bounds are then constants, also where t0 and t1 are traced."""
+    is in s): diffrax's time bounds are then constants, also where t0 and t1 are traced.
+    o, c and m are integrated stacked in one array (`numerics.Stacked`); `sol.ys` is a
+    `State` again."""
     span = t1 - t0
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=(ts - t0) / span)
-    return diffrax.diffeqsolve(
-        diffrax.ODETerm(Rescaled(model, span)),
+    field = Stacked(model, jtu.tree_structure(y0))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(Rescaled(field, span)),
         ROS34PW2(),
         t0=0.0,
         t1=1.0,
         dt0=None,  # the controller's (`ReproducibleSteps.dt0`)
-        y0=y0,
+        y0=stack(y0),
         args=args,
         saveat=saveat,
         stepsize_controller=options.controller(span),
@@ -125,6 +128,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
         throw=False,
     )
+    return eqx.tree_at(lambda sol: sol.ys, sol, jax.vmap(field.unstack)(sol.ys))
 
 
 class _Progress:

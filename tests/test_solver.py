@@ -11,7 +11,7 @@ from helpers import observed_orders
 import jaxtissue as jt
 from jaxtissue.growth import GrowthModel
 from jaxtissue.growth_jacobian import GrowthJacobian
-from jaxtissue.numerics import ROS34PW2, FivePoint, Rescaled, line_sweeps, thomas_factor, thomas_solve
+from jaxtissue.numerics import ROS34PW2, FivePoint, Rescaled, Stacked, line_sweeps, stack, thomas_factor, thomas_solve
 from jaxtissue.params import nondimensionalise
 from jaxtissue.simulate import default_o2_sweeps
 from jaxtissue.state import State
@@ -64,6 +64,18 @@ def test_a_solve_in_unit_time_is_the_same_discrete_map():
     in_s = _solve(ROS34PW2(), y0, diffrax.ConstantStepSize(), jnp.asarray(1 / 8), field=Rescaled(MODEL, T), t1=1.0)
     np.testing.assert_allclose(in_s, in_t, rtol=1e-12, atol=1e-14)
     assert float(jnp.max(jnp.abs(in_t - _flat(y0)))) > 1e-2  # the state moved
+
+
+def test_a_stacked_solve_is_the_same_discrete_map():
+    """`Stacked` (what `growth_solve` integrates): the leaves stacked in one array take
+    the same adaptive steps to the same states, to round-off."""
+    y0 = State.initial(COEFFS, GRID)
+    controller = diffrax.PIDController(rtol=1e-6, atol=1e-9)
+    field = Stacked(MODEL, jax.tree_util.tree_structure(y0))
+    as_tree = diffrax.diffeqsolve(diffrax.ODETerm(MODEL), ROS34PW2(), 0.0, T, 1.0, y0, stepsize_controller=controller)
+    stacked = diffrax.diffeqsolve(diffrax.ODETerm(field), ROS34PW2(), 0.0, T, 1.0, stack(y0), stepsize_controller=controller)
+    assert int(stacked.stats["num_steps"]) == int(as_tree.stats["num_steps"]) > 10
+    np.testing.assert_allclose(stacked.ys[-1], stack(jax.tree_util.tree_map(lambda x: x[-1], as_tree.ys)), rtol=1e-12, atol=1e-12)
 
 
 def _dense_five_point(op: FivePoint) -> np.ndarray:

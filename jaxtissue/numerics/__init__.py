@@ -18,5 +18,7 @@ from ._rosenbrock import (
     AbstractStructuredField as AbstractStructuredField,
     ReproducibleSteps as ReproducibleSteps,
     Rescaled as Rescaled,
+    Stacked as Stacked,
     quantise as quantise,
+    stack as stack,
 )

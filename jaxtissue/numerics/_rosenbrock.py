@@ -64,6 +64,40 @@ class Rescaled(AbstractStructuredField):
         return _ScaledFactor(self.field.shifted_factor(t, y, args, a / self.scale), self.scale)
 
 
+class Stacked(AbstractStructuredField):
+    """A `field` on a pytree of equal-shape leaves (`treedef`), integrated as one array:
+    the leaves stacked along a new leading axis (`stack`). diffrax's per-leaf work in
+    each step (stage combinations, error norm, interpolation, saving) then runs once on
+    one array instead of once per leaf: fewer of the small XLA kernels that set a 1-D
+    step's cost (docs/numerics.md)."""
+
+    field: AbstractStructuredField
+    treedef: jtu.PyTreeDef = eqx.field(static=True)
+
+    def unstack(self, y):
+        """The pytree whose leaves are y's rows (y from `stack`)."""
+        return jtu.tree_unflatten(self.treedef, list(y))
+
+    def __call__(self, t, y, args):
+        return stack(self.field(t, self.unstack(y), args))
+
+    def shifted_factor(self, t, y, args, a):
+        return _StackedFactor(self.field.shifted_factor(t, self.unstack(y), args, a), self.treedef)
+
+
+def stack(tree) -> jax.Array:
+    """The leaves of `tree` (equal shapes) stacked along a new leading axis."""
+    return jnp.stack(jtu.tree_leaves(tree))
+
+
+class _StackedFactor(eqx.Module):
+    factor: eqx.Module
+    treedef: jtu.PyTreeDef = eqx.field(static=True)
+
+    def solve(self, r):
+        return stack(self.factor.solve(jtu.tree_unflatten(self.treedef, list(r))))
+
+
 class _ScaledFactor(eqx.Module):
     factor: eqx.Module
     scale: jax.Array | float
