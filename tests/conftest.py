@@ -1,15 +1,19 @@
+import atexit
 import os
 import pathlib
+import shutil
 import sys
 import tempfile
 
 # The suite is dominated by compilation: one compilation cache per test run serves every
 # worker and subprocess (the CLI tests), and XLA compiles as the command line has it
 # (`jaxtissue.cache.use_fast_compilation`; XLA's optimisation level stays at its
-# default: the tests check the programs users run).
+# default: the tests check the programs users run). The process that makes the folder
+# (under xdist, the controller) removes it at exit.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxtissue-tests-cache-")
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
 
 import jax  # noqa: E402
 from jaxtyping import install_import_hook  # noqa: E402
