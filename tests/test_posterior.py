@@ -509,6 +509,25 @@ def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
     assert abs(results[phases][1]) < 4 / np.sqrt(results[phases][3]) and abs(results[phases][2] - 1.0) < 0.15
 
 
+def test_the_correction_is_differentiable_at_its_knots():
+    """`z_from_v` at a point where the leader sits exactly on a knot of its map and z_l
+    on a knot of the other coordinates' curves: its Jacobian equals central differences
+    and its log-determinant is the one `z_from_v` returns (one-sided clipping at a knot
+    would halve the derivative there)."""
+    c = post.no_correction(2)
+    q_z = jnp.asarray([-1.4, -0.5, 0.0, 0.8, 1.9])  # the leader's map: knots q_v at these values
+    c = c._replace(q_z=q_z, q_slope=jnp.asarray([0.9, 1.1, 1.3, 1.0, 0.7]), x=jnp.asarray([-2.0, -1.0, -0.5, 0.5, 1.5]),
+                   m=c.m.at[:, 1].set(jnp.asarray([0.3, -0.2, 0.1, 0.4, 0.0])), m_slope=c.m_slope.at[:, 1].set(0.2),
+                   log_s=c.log_s.at[:, 1].set(jnp.asarray([0.1, -0.3, 0.2, 0.0, -0.1])), log_s_slope=c.log_s_slope.at[:, 1].set(-0.4))
+    v = jnp.asarray([float(c.q_v[1]), 0.7])  # z_l = q_z[1] = -0.5 = x[2]
+    z, log_det = post.z_from_v(c, v)
+    assert float(z[0]) == pytest.approx(-0.5, abs=1e-15)
+    jac = jax.jacfwd(lambda v: post.z_from_v(c, v)[0])(v)
+    fd = np.stack([(post.z_from_v(c, v + e)[0] - post.z_from_v(c, v - e)[0]) / 2e-6 for e in 1e-6 * jnp.eye(2)], axis=1)
+    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-8)  # FD across a jump in the curvature
+    assert float(jnp.log(jnp.abs(jnp.linalg.det(jac)))) == pytest.approx(float(log_det), abs=1e-12)
+
+
 def test_the_leader_map_spreads_a_pile_against_a_bound():
     """`post.fit_correction`'s map of the leader: points of a leader piled against a wall
     (exponential, z ≥ 0) come out with the normal's quantiles at `CORRECTION_LEVELS` (up

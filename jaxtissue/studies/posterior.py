@@ -355,10 +355,12 @@ class Ridge(NamedTuple):
 
 def _segment(x, knots):
     """(j, h, s): the knot interval [knots[j], knots[j + 1]] of x, its width, and x's
-    place in it (0 to 1, clipped)."""
+    place in it (0 to 1 between the end knots; beyond them, the end interval's s, which
+    the callers do not use). s is not clipped: at a knot a clip's tie would halve its
+    derivative."""
     j = jnp.clip(jnp.searchsorted(knots, x) - 1, 0, knots.shape[0] - 2)
     h = knots[j + 1] - knots[j]
-    return j, h, jnp.clip((x - knots[j]) / h, 0.0, 1.0)
+    return j, h, (x - knots[j]) / h
 
 
 def _hermite(x, knots, y, slope):
