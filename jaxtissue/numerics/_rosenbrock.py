@@ -76,7 +76,7 @@ class Stacked(AbstractStructuredField):
 
     def unstack(self, y):
         """The pytree whose leaves are y's rows (y from `stack`)."""
-        return jtu.tree_unflatten(self.treedef, list(y))
+        return _unstack(self.treedef, y)
 
     def __call__(self, t, y, args):
         return stack(self.field(t, self.unstack(y), args))
@@ -90,12 +90,16 @@ def stack(tree) -> jax.Array:
     return jnp.stack(jtu.tree_leaves(tree))
 
 
+def _unstack(treedef, y):
+    return jtu.tree_unflatten(treedef, list(y))
+
+
 class _StackedFactor(eqx.Module):
     factor: eqx.Module
     treedef: jtu.PyTreeDef = eqx.field(static=True)
 
     def solve(self, r):
-        return stack(self.factor.solve(jtu.tree_unflatten(self.treedef, list(r))))
+        return stack(self.factor.solve(_unstack(self.treedef, r)))
 
 
 class _ScaledFactor(eqx.Module):
