@@ -84,8 +84,9 @@ def _batch(params, protocols: list, t_end_s, grid, beam) -> list:
     n = even_batches(len(protocols), len(protocols))
     padded = protocols + protocols[-1:] * (n - len(protocols))
     stacked = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v, float) for v in x]), *padded)
-    out = jax.jit(map_over_devices(lambda q: simulate(params, q, t_end_s, grid, beam=beam), n))(stacked)
-    return [jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i in range(len(protocols))]
+    out = jax.device_get(jax.jit(map_over_devices(lambda q: simulate(params, q, t_end_s, grid, beam=beam), n))(stacked))
+    # split on the host: indexing device arrays would compile a gather for every leaf
+    return [jax.tree_util.tree_map(lambda x, i=i: jax.device_put(x[i]), out) for i in range(len(protocols))]
 
 
 def three_week(result) -> dict:
