@@ -1,7 +1,9 @@
-"""JAX's persistent compilation cache in a per-user folder (docs/numerics.md,
-"Compilation"): the second run of the same program loads it from disk instead of
-compiling it again. The command line enables it; Python users may call
-`enable_compilation_cache()` themselves.
+"""Compiled programs kept between processes (docs/numerics.md, "Compilation"): JAX's
+persistent compilation cache in a per-user folder, so that the second run of the same
+program loads it from disk instead of compiling it again, and jaxtissue's saved
+executables (`saved_executables`, `call`), with which a second run of `simulate` skips
+tracing and lowering as well. The command line enables both; Python users may call
+`enable_compilation_cache()` and use `saved_executables` themselves.
 
 The folder is `$XDG_CACHE_HOME/jaxtissue` (default `~/.cache/jaxtissue`);
 `JAXTISSUE_NO_CACHE=1` turns it off; a folder set for JAX itself
@@ -17,12 +19,18 @@ defaults.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
 import pathlib
+import re
 import tempfile
 import warnings
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
 
 MAX_SIZE_BYTES = 2 * 1024**3
 """The folder's size limit; least recently used entries go first."""
@@ -119,3 +127,203 @@ def enable_compilation_cache(folder: str | os.PathLike | None = None) -> pathlib
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", MAX_SIZE_BYTES)
     return path
+
+
+# ---------------------------------------------------------------------------------------
+# Saved executables: a second run skips tracing and lowering as well
+# ---------------------------------------------------------------------------------------
+
+MAX_EXECUTABLES = 64
+"""Saved executables kept in their folder; least recently used go first."""
+
+_FORMAT = 2
+_SUFFIX = ".jtx"
+_folder: pathlib.Path | None = None
+_loaded: dict = {}  # key -> _Entry, this process's programs
+
+
+class _Out:
+    """Marks where an output array goes in a saved result's skeleton."""
+
+
+_OUT = _Out()
+
+
+@contextlib.contextmanager
+def saved_executables(folder: str | os.PathLike | None):
+    """Within the block, `call` keeps the compiled programs it runs as files in `folder`
+    (None: off), and a later process loads them instead of tracing, lowering and
+    compiling again (docs/numerics.md, "Compilation"). The command line's runs use
+    `<cache folder>/executables`."""
+    global _folder
+    previous, _folder = _folder, None if folder is None else pathlib.Path(folder)
+    try:
+        yield
+    finally:
+        _folder = previous
+
+
+def call(jitted, *args):
+    """`jitted(*args)`, for an `eqx.filter_jit` function (array leaves traced, the rest
+    static), through a saved executable where `saved_executables` is on and no argument
+    is traced: looked up by a key of the function, its static arguments, the shapes and
+    dtypes of its arrays, jaxtissue's source and the versions, flags and devices that
+    compile it. A program that cannot be saved (one with host callbacks: a progress bar)
+    runs from memory; an unreadable file costs a warning and a compilation."""
+    folder = _folder
+    if folder is None:
+        return jitted(*args)
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jtu.tree_flatten(dynamic)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return jitted(*args)
+    key = _key(jitted, treedef, static, leaves)
+    if key is None:  # a static argument without a stable description (e.g. a function)
+        return jitted(*args)
+    entry = _loaded.get(key) or _load(folder / f"{key}{_SUFFIX}")
+    if entry is None:
+        entry = _compile(jitted.__wrapped__, treedef, static, leaves)
+        _save(folder, key, entry, len(leaves))
+    _loaded.pop(key, None)
+    _loaded[key] = entry  # the most recent last; a few kept
+    while len(_loaded) > 8:
+        del _loaded[next(iter(_loaded))]
+    return entry(leaves)
+
+
+class _Entry:
+    """A compiled program taking and giving flat lists of arrays, and `skeleton`: its
+    result with `_Out` where the arrays go (what `_save` pickles)."""
+
+    def __init__(self, compiled, skeleton):
+        self.compiled, self.skeleton = compiled, skeleton
+        parts, self.structure = jtu.tree_flatten(skeleton, is_leaf=lambda x: isinstance(x, _Out))
+        self.parts = [_OUT if isinstance(x, _Out) else x for x in parts]  # one marker, also after unpickling
+
+    def __call__(self, leaves):
+        placed = jax.device_put(tuple(leaves), self.compiled.input_shardings[0])  # as `jit` places them (e.g. split over devices)
+        outputs = iter(self.compiled(*placed))
+        return jtu.tree_unflatten(self.structure, [next(outputs) if x is _OUT else x for x in self.parts])
+
+
+def _compile(fn, treedef, static, leaves) -> _Entry:
+    box = {}
+
+    def flat(*leaves):
+        out = fn(*eqx.combine(jtu.tree_unflatten(treedef, leaves), static))
+        arrays, rest = eqx.partition(out, eqx.is_array)
+        box["skeleton"] = eqx.combine(jtu.tree_map(lambda _: _OUT, arrays), rest)
+        return jtu.tree_leaves(arrays)
+
+    flat.__name__ = flat.__qualname__ = fn.__name__  # the program's name in JAX's logs
+    lowered = jax.jit(flat).lower(*leaves)
+    # compiled afresh: on CPU, a program that JAX loaded from its own cache serialises
+    # without its kernels ("Function ... not found" when the next process runs it)
+    # (a process-wide setting: `saved_executables` is for one computing thread, the command line's)
+    previous = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        compiled = lowered.compile()
+    finally:
+        jax.config.update("jax_enable_compilation_cache", previous)
+    return _Entry(compiled, box["skeleton"])
+
+
+def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
+    """Write `entry` atomically as `<key>.jtx`, unless its program cannot be serialised."""
+    import pickle
+
+    from jax.experimental.serialize_executable import serialize
+
+    if getattr(getattr(entry.compiled._executable, "_unloaded_executable", None), "host_callbacks", None):
+        return  # its callbacks live in this process only
+    try:
+        blob, _, _ = serialize(entry.compiled)
+        devices = sorted({d.id for s in jtu.tree_leaves(entry.compiled.input_shardings) for d in s.device_set})
+        data = pickle.dumps((_FORMAT, blob, n_in, devices, entry.skeleton))
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".tmp-", delete=False) as f:
+            f.write(data)
+        os.replace(f.name, folder / f"{key}{_SUFFIX}")
+        _prune(folder)
+    except Exception as err:  # a cache that cannot be written costs a warning, never the run
+        warnings.warn(f"could not save a compiled program in {folder} ({type(err).__name__}: {err}); "
+                      "the next run compiles it again", RuntimeWarning, stacklevel=3)
+
+
+def _prune(folder: pathlib.Path) -> None:
+    files = sorted(folder.glob(f"*{_SUFFIX}"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for path in files[MAX_EXECUTABLES:]:
+        path.unlink(missing_ok=True)
+
+
+def _load(path: pathlib.Path) -> _Entry | None:
+    """The saved executable at `path`, or None (absent; unreadable: with a warning)."""
+    import pickle
+
+    from jax.experimental.serialize_executable import deserialize_and_load
+
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        version, blob, n_in, device_ids, skeleton = pickle.loads(data)
+        if version != _FORMAT:
+            return None
+        n_out = sum(isinstance(x, _Out) for x in jtu.tree_leaves(skeleton, is_leaf=lambda x: isinstance(x, _Out)))
+        devices = {d.id: d for d in jax.devices()}
+        compiled = deserialize_and_load(blob, jtu.tree_structure((tuple(range(n_in)), {})), jtu.tree_structure(list(range(n_out))),
+                                        execution_devices=[devices[i] for i in device_ids])
+        os.utime(path)  # recently used
+        return _Entry(compiled, skeleton)
+    except Exception as err:
+        warnings.warn(f"saved program {path} is unreadable ({type(err).__name__}); compiling it again", RuntimeWarning, stacklevel=3)
+        return None
+
+
+def _key(jitted, treedef, static, leaves) -> str | None:
+    """A hex digest of `_description`, or None where a static argument is described only
+    by its address (a function, say: its program would never be found again)."""
+    import hashlib
+
+    text = _description(jitted, treedef, static, leaves)
+    return None if re.search(r" at 0x[0-9a-f]+", text) else hashlib.sha256(text.encode()).hexdigest()[:40]
+
+
+def _description(jitted, treedef, static, leaves) -> str:
+    """What names the program `jitted` compiles for these arguments: the environment
+    (`_environment`), the function, the structure and static values of its arguments
+    and the shape and dtype of each array."""
+    fn = jitted.__wrapped__
+    static_leaves, static_def = jtu.tree_flatten(static)
+    return "\n".join([
+        _environment(), f"{fn.__module__}.{fn.__qualname__}", repr(treedef), repr(static_def),
+        *(f"{type(x).__module__}.{type(x).__qualname__} {x!r}" for x in static_leaves),
+        *(f"{jnp.shape(x)} {jnp.result_type(x)} {getattr(x, 'weak_type', False)}" for x in leaves),
+    ])
+
+
+@functools.lru_cache(maxsize=1)
+def _environment() -> str:
+    """What else decides a compiled program: jaxtissue's source, the versions of the
+    libraries that trace and compile it, XLA's flags and the devices."""
+    import hashlib
+    import importlib.metadata
+
+    source = hashlib.sha256()
+    package = pathlib.Path(__file__).resolve().parent
+    for path in sorted(package.rglob("*.py")):
+        source.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes())
+    versions = []
+    for name in ("jax", "jaxlib", "equinox", "diffrax", "lineax", "optimistix", "numpy"):
+        try:
+            versions.append(f"{name}={importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError:
+            versions.append(f"{name}=?")
+    devices = jax.devices()
+    return "\n".join([
+        source.hexdigest(), " ".join(versions), os.environ.get("XLA_FLAGS", ""), os.environ.get("EQX_ON_ERROR", ""),
+        f"x64={jax.config.jax_enable_x64}", f"{devices[0].platform} {devices[0].client.platform_version} {len(devices)} "
+        + " ".join(sorted({d.device_kind for d in devices})),
+    ])

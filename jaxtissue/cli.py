@@ -28,7 +28,7 @@ import warnings
 
 import numpy as np
 
-from .cache import enable_compilation_cache, use_fast_compilation
+from .cache import enable_compilation_cache, saved_executables, use_fast_compilation
 from .grid import DEFAULT_SHAPES
 from .io import InputError, RunError, ending
 from .limits import MAX_STEPS
@@ -353,8 +353,8 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
     params, lumping_note = with_rule_constant(params, protocol.lumping)
     notes = limits.extrapolation(params, protocol, args.t_end)
-    # the writers' libraries, used after the run (xarray's netCDF writer looks for dask's scheduler)
-    writers = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.distributed")
+    # the writers' libraries, used after the run (xarray looks for dask's arrays, its netCDF writer for dask's scheduler)
+    writers = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.array", "dask.distributed")
     if args.checkpoint_every is None:
         result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress, save=args.save,
                           **resolution)
@@ -481,6 +481,8 @@ def _long_run(cells: int, t_end_s: float, coupling_interval_s: float, regime: st
 
 
 def cmd_reproduce(args) -> int:
+    from concurrent.futures import ThreadPoolExecutor
+
     from . import io
     from .studies import reproduce, sweep
 
@@ -490,15 +492,20 @@ def cmd_reproduce(args) -> int:
     io.check_output_folder(args.out, args.overwrite)
     progress = args.progress if args.progress is not None else \
         _long_run(int(np.prod(DEFAULT_SHAPES["flex"])), args.t_end, COUPLING_INTERVAL_S, "flex")
+    # what reads the shipped posterior and writes the outputs, imported while the cases run
+    libraries = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.array", "dask.distributed", "arviz")
     results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
+    libraries.join()
     failed = [name for name, r in results.items() if bool(r.failed)]
     if failed:
         print(f"jaxtissue: error: {'; '.join(f'{n}: {as_flags(results[n].failure_message())}' for n in failed)}. Nothing was written.", file=sys.stderr)
         return 1
-    print("running the calibrated model's posterior draws ...")
-    bands = reproduce.calibrated_bands(args.t_end)
-    with io.output_folder(args.out, args.overwrite) as tmp:
-        reproduce.write(results, params, tmp, bands)
+    with io.output_folder(args.out, args.overwrite) as tmp, ThreadPoolExecutor(1, thread_name_prefix="jaxtissue figures") as pool:
+        cases = pool.submit(reproduce.write_cases, results, tmp)  # drawn while the posterior draws run
+        print("running the calibrated model's posterior draws ...")
+        bands = reproduce.calibrated_bands(args.t_end)
+        cases.result()
+        reproduce.write_report(results, params, tmp, bands)
     print(f"wrote {args.out}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
     return 0
 
@@ -746,10 +753,12 @@ def main(argv=None) -> int:
         warnings.showwarning = _show_warning
         warnings.simplefilter("always", RuntimeWarning)
         use_fast_compilation()  # before anything starts JAX's backends
-        enable_compilation_cache()  # a second run of the same command loads its programs
+        folder = enable_compilation_cache()  # a second run of the same command loads its programs
         warnings.simplefilter("default", RuntimeWarning)
+        warnings.filterwarnings("ignore", r"\s*ArviZ is undergoing", FutureWarning)  # its daily notice, also where imported in the background
         try:
-            return _interruptible(_run, args)
+            with saved_executables(None if folder is None else folder / "executables"):
+                return _interruptible(_run, args)
         finally:
             from .io import release_outputs
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-from . import limits
+from . import cache, limits
 from .beam import BeamGrid, loading_cycle
 from .coupling import beam_from_ecm, lumped_transport, with_rule_constant
 from .grid import Grid
@@ -354,7 +354,7 @@ def simulate(
 
         _Progress.bar = tqdm(total=len(times) - 1, unit="interval", desc="flex culture")  # the save times are the interval bounds
     try:
-        return _simulate(params, protocol, grid, beam, (times, float(coupling_interval_s), save == "end"), options, initial_state, progress, cell_transport)
+        return cache.call(_simulate, params, protocol, grid, beam, (times, float(coupling_interval_s), save == "end"), options, initial_state, progress, cell_transport)
     finally:
         if _Progress.bar is not None:
             _Progress.bar.close()

@@ -1,16 +1,21 @@
 """The persistent compilation cache of the command line (`jaxtissue.cache`): a second
-run loads its programs; an unusable folder or a corrupt entry costs a warning only."""
+run loads its programs (JAX's compiled programs, and jaxtissue's saved executables that
+skip tracing too); an unusable folder or a corrupt entry costs a warning only."""
 
 import os
 import subprocess
 import sys
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 import xarray as xr
 
 import jaxtissue as jt
-from jaxtissue.cache import default_folder, enable_compilation_cache
+from jaxtissue import cache
+from jaxtissue.cache import default_folder, enable_compilation_cache, saved_executables
 
 RUN = ["simulate", "--regime", "flex", "--t-end", "4e4", "--grid", "4", "8", "--period", "2"]
 
@@ -67,13 +72,19 @@ def test_second_run_loads_its_programs_and_survives_a_corrupt_cache(tmp_path):
     entries = [p for p in (home / "jaxtissue").iterdir() if p.is_file() and not p.name.startswith(".")]
     assert any("simulate" in p.name for p in entries), [p.name for p in entries]  # the run's program is kept
 
-    for p in entries:  # every entry corrupt: the next run recompiles, with a warning at most
-        p.write_bytes(b"\0garbage")
+    saved = list((home / "jaxtissue" / "executables").glob("*.jtx"))
+    assert len(saved) == 1  # and the executable, which a second run loads without tracing
+
     code, _, stderr = run_cli([*RUN, "--out", str(tmp_path / "second")], home)
-    assert code == 0, stderr
+    assert code == 0 and "warning" not in stderr, stderr
+    for p in entries + saved:  # every entry corrupt: the next run recompiles, with a warning at most
+        p.write_bytes(b"\0garbage")
+    code, _, stderr = run_cli([*RUN, "--out", str(tmp_path / "third")], home)
+    assert code == 0 and "Traceback" not in stderr, stderr
     first = xr.open_dataset(tmp_path / "first" / "result.nc", engine="h5netcdf")
-    second = xr.open_dataset(tmp_path / "second" / "result.nc", engine="h5netcdf")
-    assert float(second["collagen_mg_per_g"][-1]) == float(first["collagen_mg_per_g"][-1])
+    for run in ("second", "third"):
+        again = xr.open_dataset(tmp_path / run / "result.nc", engine="h5netcdf")
+        assert float(again["collagen_mg_per_g"][-1]) == float(first["collagen_mg_per_g"][-1])
 
 
 def test_fast_compilation_is_set_before_jax_starts_and_never_over_the_users_flags(monkeypatch):
@@ -96,3 +107,98 @@ def test_fast_compilation_is_set_before_jax_starts_and_never_over_the_users_flag
     monkeypatch.delenv("JAXTISSUE_XLA_DEFAULTS")
     jax.numpy.zeros(1)  # this process's backend has started
     assert use_fast_compilation() is False and os.environ["XLA_FLAGS"] == ""
+
+
+@eqx.filter_jit
+def _affine(x, scale, label):
+    """A cheap program with static arguments and static outputs."""
+    return {"y": x * scale + 1.0, "label": label, "n": x.shape[0]}
+
+
+@eqx.filter_jit
+def _noisy(x):
+    jax.debug.callback(lambda v: None, x)
+    return x + 1.0
+
+
+def _saved(folder):
+    return sorted(folder.glob("*.jtx"))
+
+
+def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, monkeypatch):
+    """`cache.call`: the first call compiles and saves; a later process (here: the
+    in-memory programs forgotten, compiling forbidden) loads the file; other static
+    values or shapes are other programs; traced arguments, host callbacks and static
+    arguments known only by their address are not saved."""
+    x = jnp.arange(3.0)
+    plain = _affine(x, 2.0, "a")
+    with saved_executables(tmp_path):
+        first = cache.call(_affine, x, 2.0, "a")
+        assert len(_saved(tmp_path)) == 1
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+            loaded = cache.call(_affine, x, 2.0, "a")
+        for out in (first, loaded):
+            np.testing.assert_array_equal(out["y"], plain["y"])
+            assert out["label"] == "a" and out["n"] == 3
+        np.testing.assert_array_equal(cache.call(_affine, x, 3.0, "a")["y"], x * 3.0 + 1.0)  # another static value
+        cache.call(_affine, jnp.arange(4.0), 2.0, "a")  # another shape
+        assert len(_saved(tmp_path)) == 3
+        np.testing.assert_array_equal(jax.jit(lambda v: cache.call(_affine, v, 2.0, "a")["y"])(x), plain["y"])  # traced: plain
+        np.testing.assert_array_equal(cache.call(_noisy, x), x + 1.0)  # its callback lives in this process only
+        assert callable(cache.call(_affine, x, 2.0, lambda: None)["label"])  # described by its address: never found again
+        assert len(_saved(tmp_path)) == 3
+    cache.call(_affine, x, 7.0, "a")  # off again after the block
+    assert len(_saved(tmp_path)) == 3
+
+
+def test_a_corrupt_or_unwritable_saved_executable_costs_a_warning(tmp_path, monkeypatch):
+    x = jnp.arange(3.0)
+    with saved_executables(tmp_path):
+        cache.call(_affine, x, 5.0, "b")
+    (path,) = _saved(tmp_path)
+    path.write_bytes(b"\0garbage")
+    monkeypatch.setattr(cache, "_loaded", {})
+    with saved_executables(tmp_path), pytest.warns(RuntimeWarning, match="unreadable"):
+        np.testing.assert_array_equal(cache.call(_affine, x, 5.0, "b")["y"], x * 5.0 + 1.0)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    with saved_executables(blocker / "executables"), pytest.warns(RuntimeWarning, match="could not save"):
+        np.testing.assert_array_equal(cache.call(_affine, x, 6.0, "b")["y"], x * 6.0 + 1.0)
+
+
+_OVER_TWO_DEVICES = """
+import sys
+import jax, jax.numpy as jnp, numpy as np
+from jaxtissue import cache
+from jaxtissue.studies.sweep import vmap_over_devices
+import equinox as eqx
+
+@eqx.filter_jit
+def split(x, n):
+    return vmap_over_devices(lambda v: jnp.sin(v) * 2.0, n)(x)
+
+@eqx.filter_jit
+def single(x):
+    return jnp.cos(x)
+
+x = np.arange(8.0)
+with cache.saved_executables(sys.argv[1]):
+    a, b = cache.call(split, x, 8), cache.call(single, x)
+np.testing.assert_allclose(np.asarray(a), np.sin(x) * 2.0, rtol=1e-15)
+np.testing.assert_allclose(np.asarray(b), np.cos(x), rtol=1e-15)
+print(len(jax.devices()), len(list(__import__("pathlib").Path(sys.argv[1]).glob("*.jtx"))))
+"""
+
+
+def test_saved_programs_over_two_devices_load_in_a_new_process(tmp_path):
+    """A program split over the devices and one on a single device, saved by one
+    process with two CPU devices and loaded by the next."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", _OVER_TWO_DEVICES, str(tmp_path)], env=env, capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.split() == ["2", "2"]

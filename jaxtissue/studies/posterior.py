@@ -40,10 +40,12 @@ import statistics
 import time
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import cache
 from ._problem_files import ModelSettings
 from .calibration import Problem
 from .sweep import even_batches, use_cpu_devices, vmap_over_devices
@@ -1146,6 +1148,20 @@ def read_saved(folder) -> Saved:
     return Saved(names, values, base, model, observations)
 
 
+@eqx.filter_jit
+def _predict_batch(base, names, protocol, t_end_s, grid, coupling_interval_s, beam, options, size, values):
+    """`predict`'s scalar outputs and failure flags of a batch of `size` draws (rows of `values`)."""
+    from ..result import SCALARS
+    from ..simulate import simulate
+
+    def one(v):
+        r = simulate(base.replace(**dict(zip(names, v))), protocol, t_end_s, grid, coupling_interval_s=coupling_interval_s,
+                     beam=beam, options=options)
+        return {k: getattr(r, k) for k in SCALARS}, r.failed
+
+    return vmap_over_devices(one, size)(values)
+
+
 def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int = 0, batch: int = 32, progress=None):
     """Posterior predictive of every scalar output over time: `draws` posterior draws
     (chosen at random, without replacement) simulated with `protocol` at the posterior's
@@ -1156,7 +1172,6 @@ def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int 
 
     from ..protocol import save_times
     from ..result import OUTPUTS, SCALARS
-    from ..simulate import simulate
 
     flat = saved.values.reshape(-1, saved.values.shape[-1])
     pick = np.random.default_rng(seed).choice(len(flat), size=min(draws, len(flat)), replace=False)
@@ -1164,13 +1179,10 @@ def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int 
     m = saved.model
     grid = m.grid(protocol.regime)
 
-    def one(v):
-        r = simulate(saved.base.replace(**dict(zip(saved.names, v))), protocol, t_end_s, grid,
-                     coupling_interval_s=m.coupling_interval_s, beam=m.beam(), options=m.options())
-        return {k: getattr(r, k) for k in SCALARS}, r.failed
-
     size = even_batches(len(chosen), batch)
-    parts = _in_batches(jax.jit(vmap_over_devices(one, size)), chosen, size, progress)
+    run = functools.partial(cache.call, _predict_batch, saved.base, tuple(saved.names), protocol, t_end_s, grid,
+                            m.coupling_interval_s, m.beam(), m.options(), size)
+    parts = _in_batches(run, chosen, size, progress)
     times = save_times(t_end_s, m.coupling_interval_s)
     failed = np.concatenate([p[1] for p in parts])
     data = {}

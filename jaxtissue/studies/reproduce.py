@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import pathlib
 
+import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from .. import io, limits, plots
+from .. import cache, io, limits, plots
 from ..beam import BeamGrid
 from ..data import observations
 from ..protocol import T_END_S, THREE_WEEKS_S, Protocol
@@ -77,16 +77,23 @@ def _batch(params, protocols: list, t_end_s, grid, beam) -> list:
     split over the devices (`sweep.map_over_devices`; padded to a multiple of their
     count): a Result per protocol. On one device, one run after another with
     `simulate`'s own program (the same work, and no second program to compile)."""
-    from .sweep import even_batches, map_over_devices
+    from .sweep import even_batches
 
     if len(jax.devices()) == 1:
         return [simulate(params, q, t_end_s, grid, beam=beam) for q in protocols]
     n = even_batches(len(protocols), len(protocols))
     padded = protocols + protocols[-1:] * (n - len(protocols))
-    stacked = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v, float) for v in x]), *padded)
-    out = jax.device_get(jax.jit(map_over_devices(lambda q: simulate(params, q, t_end_s, grid, beam=beam), n))(stacked))
+    stacked = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v, float) for v in x]), *padded)
+    out = jax.device_get(cache.call(_over_devices, params, stacked, t_end_s, grid, beam, n))
     # split on the host: indexing device arrays would compile a gather for every leaf
     return [jax.tree_util.tree_map(lambda x, i=i: jax.device_put(x[i]), out) for i in range(len(protocols))]
+
+
+@eqx.filter_jit
+def _over_devices(params, protocols, t_end_s, grid, beam, n):
+    from .sweep import map_over_devices
+
+    return map_over_devices(lambda q: simulate(params, q, t_end_s, grid, beam=beam), n)(protocols)
 
 
 def three_week(result) -> dict:
@@ -112,17 +119,29 @@ def extrapolations(results: dict, params) -> list[str]:
 
 
 def write(results: dict, params, folder, bands: dict | None = None) -> None:
-    """Figures, per-case NetCDF files, summary.json and report.md into `folder`;
-    `bands` (`calibrated_bands`) add the calibrated model to Figs 9 and 10."""
-    main = {k: results[k] for k in CASES}
+    """Figures, per-case NetCDF files, summary.json and report.md into `folder`
+    (`write_cases`, then `write_report`); `bands` (`calibrated_bands`) add the
+    calibrated model to Figs 9 and 10."""
+    write_cases(results, folder)
+    write_report(results, params, folder, bands)
+
+
+def write_cases(results: dict, folder) -> None:
+    """What needs no posterior: Figs 5, 7 and 8 and the per-case NetCDF files (the
+    command line draws them while the posterior draws run)."""
     plots.profiles(results["static"], folder / "fig5_profiles_static.png", "static culture")
     plots.profiles(results["flex"], folder / "fig7_profiles_flex.png", "flex 1 Hz, 5 mm")
     plots.ecm_maps({k: results[k] for k in ("static", "flex", "flex_paper_rule")}, folder / "fig8_ecm_maps.png")
-    plots.time_series(main, folder / "fig9_contents.png", bands)
-    plots.rigidity_and_force(main, folder / "fig10_rigidity_force.png", bands)
     (folder / "cases").mkdir()
     for name, r in results.items():
         io.write_netcdf(r.to_xarray(), folder / "cases" / f"{name}.nc")
+
+
+def write_report(results: dict, params, folder, bands: dict | None = None) -> None:
+    """Figs 9 and 10 (with the calibrated model's `bands`), summary.json and report.md."""
+    main = {k: results[k] for k in CASES}
+    plots.time_series(main, folder / "fig9_contents.png", bands)
+    plots.rigidity_and_force(main, folder / "fig10_rigidity_force.png", bands)
     summary = {name: three_week(r) for name, r in results.items()}
     summary["params"] = params.as_dict()
     summary["warnings"] = extrapolations(results, params)
