@@ -170,19 +170,19 @@ def call(jitted, *args):
     dtypes of its arrays, jaxtissue's source and the versions, flags and devices that
     compile it. A program that cannot be saved (one with host callbacks: a progress bar)
     runs from memory; an unreadable file costs a warning and a compilation."""
-    folder = _folder
-    if folder is None:
+    folder, fn = _folder, getattr(jitted, "__wrapped__", None)
+    if folder is None or fn is None:  # off, or not a jitted function
         return jitted(*args)
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jtu.tree_flatten(dynamic)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return jitted(*args)
-    key = _key(jitted, treedef, static, leaves)
+    key = _key(fn, treedef, static, leaves)
     if key is None:  # a static argument without a stable description (e.g. a function)
         return jitted(*args)
     entry = _loaded.get(key) or _load(folder / f"{key}{_SUFFIX}")
     if entry is None:
-        entry = _compile(jitted.__wrapped__, treedef, static, leaves)
+        entry = _compile(fn, treedef, static, leaves)
         _save(folder, key, entry, len(leaves))
     _loaded.pop(key, None)
     _loaded[key] = entry  # the most recent last; a few kept
@@ -282,20 +282,19 @@ def _load(path: pathlib.Path) -> _Entry | None:
         return None
 
 
-def _key(jitted, treedef, static, leaves) -> str | None:
+def _key(fn, treedef, static, leaves) -> str | None:
     """A hex digest of `_description`, or None where a static argument is described only
     by its address (a function, say: its program would never be found again)."""
     import hashlib
 
-    text = _description(jitted, treedef, static, leaves)
+    text = _description(fn, treedef, static, leaves)
     return None if re.search(r" at 0x[0-9a-f]+", text) else hashlib.sha256(text.encode()).hexdigest()[:40]
 
 
-def _description(jitted, treedef, static, leaves) -> str:
-    """What names the program `jitted` compiles for these arguments: the environment
+def _description(fn, treedef, static, leaves) -> str:
+    """What names the program of `fn` for these arguments: the environment
     (`_environment`), the function, the structure and static values of its arguments
     and the shape and dtype of each array."""
-    fn = jitted.__wrapped__
     static_leaves, static_def = jtu.tree_flatten(static)
     return "\n".join([
         _environment(), f"{fn.__module__}.{fn.__qualname__}", repr(treedef), repr(static_def),
