@@ -25,6 +25,7 @@ import os
 import pathlib
 import re
 import tempfile
+import threading
 import warnings
 
 import equinox as eqx
@@ -182,7 +183,7 @@ def call(jitted, *args):
         return jitted(*args)
     entry = _loaded.get(key) or _load(folder / f"{key}{_SUFFIX}")
     if entry is None:
-        entry = _compile(fn, treedef, static, leaves)
+        entry = _compile(fn, treedef, static, leaves, key)
         _save(folder, key, entry, len(leaves))
     _loaded.pop(key, None)
     _loaded[key] = entry  # the most recent last; a few kept
@@ -206,7 +207,9 @@ class _Entry:
         return jtu.tree_unflatten(self.structure, [next(outputs) if x is _OUT else x for x in self.parts])
 
 
-def _compile(fn, treedef, static, leaves) -> _Entry:
+def _compile(fn, treedef, static, leaves, key: str) -> _Entry:
+    """Trace, lower and compile `fn` as a program of flat arrays, named after it and `key`
+    (`<name>_<key>`: a program of its own in JAX's cache too)."""
     box = {}
 
     def flat(*leaves):
@@ -215,18 +218,42 @@ def _compile(fn, treedef, static, leaves) -> _Entry:
         box["skeleton"] = eqx.combine(jtu.tree_map(lambda _: _OUT, arrays), rest)
         return jtu.tree_leaves(arrays)
 
-    flat.__name__ = flat.__qualname__ = fn.__name__  # the program's name in JAX's logs
-    lowered = jax.jit(flat).lower(*leaves)
-    # compiled afresh: on CPU, a program that JAX loaded from its own cache serialises
-    # without its kernels ("Function ... not found" when the next process runs it)
-    # (a process-wide setting: `saved_executables` is for one computing thread, the command line's)
-    previous = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    try:
-        compiled = lowered.compile()
-    finally:
-        jax.config.update("jax_enable_compilation_cache", previous)
+    def compiled_as(name):
+        flat.__name__ = flat.__qualname__ = name
+        before = _cache_hits()
+        return jax.jit(flat).lower(*leaves).compile(), _cache_hits() > before
+
+    name = f"{fn.__name__}_{key[:12]}"
+    compiled, from_jax_cache = compiled_as(name)
+    if from_jax_cache:
+        # on the CPU an executable that JAX loaded from its cache serialises without its
+        # kernels ("Function ... not found" in the next process): compile it afresh
+        import secrets
+
+        compiled, _ = compiled_as(f"{name}_{secrets.token_hex(4)}")
     return _Entry(compiled, box["skeleton"])
+
+
+_hits = threading.local()
+
+
+def _cache_hits() -> int:
+    """JAX's persistent-cache hits in this thread so far (`jax.monitoring`)."""
+    if not _listening:
+        _listen()
+    return getattr(_hits, "n", 0)
+
+
+_listening = []
+
+
+def _listen() -> None:
+    def count(event, **_):
+        if event == "/jax/compilation_cache/cache_hits":
+            _hits.n = getattr(_hits, "n", 0) + 1
+
+    jax.monitoring.register_event_listener(count)
+    _listening.append(count)
 
 
 def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
