@@ -153,10 +153,13 @@ _OUT = _Out()
 @contextlib.contextmanager
 def saved_executables(folder: str | os.PathLike | None):
     """Within the block, `call` keeps the compiled programs it runs as files in `folder`
-    (None: off), and a later process loads them instead of tracing, lowering and
-    compiling again (docs/numerics.md, "Compilation"). The command line's runs use
+    (None, or `JAXTISSUE_NO_SAVED_PROGRAMS` set to anything but "" or "0": off), and a
+    later process loads them instead of tracing, lowering and compiling again
+    (docs/numerics.md, "Compilation"). The command line's runs use
     `<cache folder>/executables`."""
     global _folder
+    if os.environ.get("JAXTISSUE_NO_SAVED_PROGRAMS", "") not in ("", "0"):
+        folder = None
     previous, _folder = _folder, None if folder is None else pathlib.Path(folder)
     try:
         yield

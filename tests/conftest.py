@@ -10,6 +10,10 @@ import tempfile
 # (`jaxtissue.cache.use_fast_compilation`; XLA's optimisation level stays at its
 # default: the tests check the programs users run). The process that makes the folder
 # (under xdist, the controller) removes it at exit.
+# The command's runs in the tests share programs with the library's through that cache:
+# they save no executables of their own (a program named after its key would be compiled
+# again in every process), except where tests/test_cache.py checks them.
+os.environ.setdefault("JAXTISSUE_NO_SAVED_PROGRAMS", "1")
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxtissue-tests-cache-")
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"

@@ -21,7 +21,8 @@ RUN = ["simulate", "--regime", "flex", "--t-end", "4e4", "--grid", "4", "8", "--
 
 
 def run_cli(args, cache_home):
-    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE") and k != "JAXTISSUE_NO_CACHE"}
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("JAX_COMPILATION_CACHE") and k not in ("JAXTISSUE_NO_CACHE", "JAXTISSUE_NO_SAVED_PROGRAMS")}
     env["XDG_CACHE_HOME"] = str(cache_home)
     proc = subprocess.run([sys.executable, "-m", "jaxtissue.cli", *args], capture_output=True, text=True, timeout=600, env=env, check=False)
     return proc.returncode, proc.stdout, proc.stderr
@@ -130,6 +131,7 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
     in-memory programs forgotten, compiling forbidden) loads the file; other static
     values or shapes are other programs; traced arguments, host callbacks and static
     arguments known only by their address are not saved."""
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)  # the suite's setting (tests/conftest.py)
     x = jnp.arange(3.0)
     plain = _affine(x, 2.0, "a")
     with saved_executables(tmp_path):
@@ -149,11 +151,16 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
         np.testing.assert_array_equal(cache.call(_noisy, x), x + 1.0)  # its callback lives in this process only
         assert callable(cache.call(_affine, x, 2.0, lambda: None)["label"])  # described by its address: never found again
         assert len(_saved(tmp_path)) == 3
+    monkeypatch.setenv("JAXTISSUE_NO_SAVED_PROGRAMS", "1")
+    with saved_executables(tmp_path):  # turned off
+        cache.call(_affine, x, 8.0, "a")
+        assert len(_saved(tmp_path)) == 3
     cache.call(_affine, x, 7.0, "a")  # off again after the block
     assert len(_saved(tmp_path)) == 3
 
 
 def test_a_corrupt_or_unwritable_saved_executable_costs_a_warning(tmp_path, monkeypatch):
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
     x = jnp.arange(3.0)
     with saved_executables(tmp_path):
         cache.call(_affine, x, 5.0, "b")
@@ -197,7 +204,7 @@ def test_saved_programs_over_two_devices_load_in_a_new_process(tmp_path):
     process with two CPU devices; their files lost, saved again by a process that finds
     them in JAX's cache (compiled afresh: JAX's copy serialises without its kernels);
     loaded by the next."""
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS" and not k.startswith("JAX_")}
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTISSUE_NO_SAVED_PROGRAMS") and not k.startswith("JAX_")}
     env |= {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax"),
             "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
     saved = tmp_path / "executables"
