@@ -282,8 +282,15 @@ def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
 
 
 def _prune(folder: pathlib.Path) -> None:
-    files = sorted(folder.glob(f"*{_SUFFIX}"), key=lambda p: p.stat().st_mtime, reverse=True)
-    for path in files[MAX_EXECUTABLES:]:
+    """Keep the `MAX_EXECUTABLES` most recently used files (another process may be
+    pruning too)."""
+    def last_used(path):
+        try:
+            return path.stat().st_mtime
+        except OSError:
+            return 0.0
+
+    for path in sorted(folder.glob(f"*{_SUFFIX}"), key=last_used, reverse=True)[MAX_EXECUTABLES:]:
         path.unlink(missing_ok=True)
 
 
