@@ -151,6 +151,15 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
         np.testing.assert_array_equal(cache.call(_noisy, x), x + 1.0)  # its callback lives in this process only
         assert callable(cache.call(_affine, x, 2.0, lambda: None)["label"])  # described by its address: never found again
         assert len(_saved(tmp_path)) == 3
+    monkeypatch.setattr(cache, "MAX_EXECUTABLES", 3)
+    with saved_executables(tmp_path):  # the least recently used go first
+        cache.call(_affine, x, 2.0, "a")  # loaded from memory: its file keeps its age
+        cache.call(_affine, x, 4.0, "a")
+        assert len(_saved(tmp_path)) == 3
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("the newest file was removed"))
+            np.testing.assert_array_equal(cache.call(_affine, x, 4.0, "a")["y"], x * 4.0 + 1.0)
     monkeypatch.setenv("JAXTISSUE_NO_SAVED_PROGRAMS", "1")
     with saved_executables(tmp_path):  # turned off
         cache.call(_affine, x, 8.0, "a")
