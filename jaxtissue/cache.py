@@ -201,13 +201,19 @@ class _Entry:
 
     def __init__(self, compiled, skeleton):
         self.compiled, self.skeleton = compiled, skeleton
-        parts, self.structure = jtu.tree_flatten(skeleton, is_leaf=lambda x: isinstance(x, _Out))
-        self.parts = [_OUT if isinstance(x, _Out) else x for x in parts]  # one marker, also after unpickling
+        self.parts, self.structure = _flatten(skeleton)
 
     def __call__(self, leaves):
         placed = jax.device_put(tuple(leaves), self.compiled.input_shardings[0])  # as `jit` places them (e.g. split over devices)
         outputs = iter(self.compiled(*placed))
         return jtu.tree_unflatten(self.structure, [next(outputs) if x is _OUT else x for x in self.parts])
+
+
+def _flatten(skeleton) -> tuple[list, jtu.PyTreeDef]:
+    """A skeleton's leaves, with `_OUT` where the arrays go (one marker, also after
+    unpickling), and its structure."""
+    parts, structure = jtu.tree_flatten(skeleton, is_leaf=lambda x: isinstance(x, _Out))
+    return [_OUT if isinstance(x, _Out) else x for x in parts], structure
 
 
 def _compile(fn, treedef, static, leaves, key: str) -> _Entry:
@@ -242,21 +248,18 @@ _hits = threading.local()
 
 def _cache_hits() -> int:
     """JAX's persistent-cache hits in this thread so far (`jax.monitoring`)."""
-    if not _listening:
-        _listen()
+    _listen()
     return getattr(_hits, "n", 0)
 
 
-_listening = []
-
-
+@functools.cache
 def _listen() -> None:
+    """Count `_cache_hits` from now on (once per process)."""
     def count(event, **_):
         if event == "/jax/compilation_cache/cache_hits":
             _hits.n = getattr(_hits, "n", 0) + 1
 
     jax.monitoring.register_event_listener(count)
-    _listening.append(count)
 
 
 def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
@@ -265,6 +268,8 @@ def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
 
     from jax.experimental.serialize_executable import serialize
 
+    from .io import atomic_write
+
     if getattr(getattr(entry.compiled._executable, "_unloaded_executable", None), "host_callbacks", None):
         return  # its callbacks live in this process only
     try:
@@ -272,9 +277,7 @@ def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
         devices = sorted({d.id for s in jtu.tree_leaves(entry.compiled.input_shardings) for d in s.device_set})
         data = pickle.dumps((_FORMAT, blob, n_in, devices, entry.skeleton))
         folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".tmp-", delete=False) as f:
-            f.write(data)
-        os.replace(f.name, folder / f"{key}{_SUFFIX}")
+        atomic_write(folder / f"{key}{_SUFFIX}", lambda f: f.write(data))
         _prune(folder)
     except Exception as err:  # a cache that cannot be written costs a warning, never the run
         warnings.warn(f"could not save a compiled program in {folder} ({type(err).__name__}: {err}); "
@@ -308,7 +311,7 @@ def _load(path: pathlib.Path) -> _Entry | None:
         version, blob, n_in, device_ids, skeleton = pickle.loads(data)
         if version != _FORMAT:
             return None
-        n_out = sum(isinstance(x, _Out) for x in jtu.tree_leaves(skeleton, is_leaf=lambda x: isinstance(x, _Out)))
+        n_out = _flatten(skeleton)[0].count(_OUT)
         devices = {d.id: d for d in jax.devices()}
         compiled = deserialize_and_load(blob, jtu.tree_structure((tuple(range(n_in)), {})), jtu.tree_structure(list(range(n_out))),
                                         execution_devices=[devices[i] for i in device_ids])

@@ -353,8 +353,7 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")
     params, lumping_note = with_rule_constant(params, protocol.lumping)
     notes = limits.extrapolation(params, protocol, args.t_end)
-    # the writers' libraries, used after the run (xarray looks for dask's arrays, its netCDF writer for dask's scheduler)
-    writers = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.array", "dask.distributed")
+    writers = _import_in_background(*_WRITERS)
     if args.checkpoint_every is None:
         result = simulate(params, protocol, t_end_s=args.t_end, grid=grid, options=options, progress=progress, save=args.save,
                           **resolution)
@@ -390,6 +389,11 @@ def cmd_simulate(args) -> int:
         shutil.rmtree(kept, ignore_errors=True)
     print(f"wrote {args.out}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
     return 0
+
+
+_WRITERS = ("jaxtissue.plots", "xarray", "h5netcdf", "dask.array", "dask.distributed")
+"""The writers' libraries, imported while a command's runs go on (xarray looks for
+dask's arrays, its netCDF writer for dask's scheduler)."""
 
 
 def _import_in_background(*modules: str):
@@ -492,8 +496,7 @@ def cmd_reproduce(args) -> int:
     io.check_output_folder(args.out, args.overwrite)
     progress = args.progress if args.progress is not None else \
         _long_run(int(np.prod(DEFAULT_SHAPES["flex"])), args.t_end, COUPLING_INTERVAL_S, "flex")
-    # what reads the shipped posterior and writes the outputs, imported while the cases run
-    libraries = _import_in_background("jaxtissue.plots", "xarray", "h5netcdf", "dask.array", "dask.distributed", "arviz")
+    libraries = _import_in_background(*_WRITERS, "arviz")  # and what reads the shipped posterior
     results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
     libraries.join()
     failed = [name for name, r in results.items() if bool(r.failed)]
