@@ -36,3 +36,13 @@ use_fast_compilation()  # in XLA_FLAGS, which the CLI tests' subprocesses inheri
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the independent SciPy reference, shared helpers
+
+# The files that take longest start first: two workers (`--dist loadfile`) then finish
+# together instead of one running a long file alone at the end.
+LONGEST_FIRST = ("test_posterior.py", "test_posterior_study.py", "test_coupling.py", "test_solver.py", "test_beam.py",
+                 "test_growth.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order

@@ -282,7 +282,9 @@ def test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds():
     print(f"ridge out of a corner: means {mean.round(4)} (quadrature {exact.round(4)}), bulk ESS {ess.round()}, "
           f"{draws.leapfrog_steps.mean():.1f} leapfrog steps a draw, {int(draws.diverging.sum())} divergent")
     assert np.all(np.abs(mean - exact) < 4 * sd / np.sqrt(ess))
-    assert np.all(ess > 250) and draws.leapfrog_steps.mean() < 7 and draws.diverging.sum() < 0.01 * draws.diverging.size
+    # the steps a draw tell the two apart; one run's bulk ESS is noisy (105–575 over seeds 0–11, round-off changes
+    # the chains): its floor keeps the means' check above meaningful
+    assert np.all(ess > 80) and draws.leapfrog_steps.mean() < 7 and draws.diverging.sum() < 0.01 * draws.diverging.size
 
 
 @dataclasses.dataclass(frozen=True)

@@ -87,23 +87,35 @@ SOFT_EDGE = 0.05  # δ of the soft box, as a fraction of the range of t
 
 
 def _t_bounds(free):
+    """(lo, hi) of t for `free`, NumPy arrays: what the compiled maps below take (the
+    maps between u, t, w and z are compiled once per shape; called eagerly, as the
+    whitening calls them, their operations would each compile on their own)."""
     lo, hi = zip(*(f.t_bounds for f in free))
-    lo, hi = jnp.asarray(lo), jnp.asarray(hi)
-    return lo, hi, SOFT_EDGE * (hi - lo)
+    return np.asarray(lo, float), np.asarray(hi, float)
 
 
 def t_from_u(free, u):
     """The fit coordinate t (ln θ or θ) of u for the free parameters `free`: the soft box
     t = lo + δ·[s((u − lo)/δ) − s((u − hi)/δ)], s the softplus function, a smooth
     increasing map of the real line onto (lo, hi) that is t ≈ u a few δ inside."""
-    lo, hi, d = _t_bounds(free)
+    return _t_of_u(*_t_bounds(free), u)
+
+
+@jax.jit
+def _t_of_u(lo, hi, u):
+    d = SOFT_EDGE * (hi - lo)
     return lo + d * (jax.nn.softplus((u - lo) / d) - jax.nn.softplus((u - hi) / d))
 
 
 def u_from_t(free, t, margin: float = 1e-3):
     """The unbounded coordinate of t (`t_from_u` inverted in closed form), t first moved
     `margin` of the range inside the bounds (an optimum on a bound has no finite u)."""
-    lo, hi, d = _t_bounds(free)
+    return _u_of_t(*_t_bounds(free), t, margin)
+
+
+@jax.jit
+def _u_of_t(lo, hi, t, margin):
+    d = SOFT_EDGE * (hi - lo)
     t = jnp.clip(jnp.asarray(t), lo + margin * (hi - lo), hi - margin * (hi - lo))
     a = (t - lo) / d
     return lo + d * (a + jnp.log(-jnp.expm1(-a))) - d * jnp.log(-jnp.expm1((t - hi) / d))
@@ -111,7 +123,12 @@ def u_from_t(free, t, margin: float = 1e-3):
 
 def log_dt_du(free, u):
     """ln(dt/du) of `t_from_u`, each coordinate: σ((u − lo)/δ) − σ((u − hi)/δ) in logs."""
-    lo, hi, d = _t_bounds(free)
+    return _log_dt_du(*_t_bounds(free), u)
+
+
+@jax.jit
+def _log_dt_du(lo, hi, u):
+    d = SOFT_EDGE * (hi - lo)
     return jax.nn.log_sigmoid((u - lo) / d) + jax.nn.log_sigmoid(-(u - hi) / d) + jnp.log(-jnp.expm1(-(hi - lo) / d))
 
 
@@ -188,7 +205,7 @@ def laplace_inverse_mass(problem: Problem, t_best, jacobian) -> np.ndarray:
     where the optimum lies on a bound, as k_a's of the Engelmayr problem does, dt/du ≈ 0
     there would make the parameter look free in u and hide the ridge that ties it to
     others."""
-    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    lo, hi = _t_bounds(problem.free)
     J = np.asarray(jacobian)
     return np.linalg.inv(J.T @ J + np.diag(12.0 / (hi - lo) ** 2))
 
@@ -391,13 +408,13 @@ def _knot_slopes(x, y, xp=np):
     return xp.concatenate([d[:1], (right * d[:-1] + left * d[1:]) / (left + right), d[-1:]])
 
 
-def _shear(free, ridge_arrays, v):
+def _shear(lo, hi, ridge_arrays, v):
     """The offsets of `Ridge` at the leader's and the held parameter's t of v (u or w:
     neither coordinate moves under the shear), for v of shape (..., k): each position's
     Hermite interpolant along the leader, blended across the positions by the Hermite
     interpolant of their weights in t_held (C¹, straight beyond the end positions)."""
     leader, held, at, x, y, slope = ridge_arrays
-    t = t_from_u(free, v)
+    t = _t_of_u(lo, hi, v)
     m = at.shape[0]
     eye = jnp.eye(m)
     blend_slope = _knot_slopes(at, eye, jnp) if m > 1 else None
@@ -415,15 +432,25 @@ def u_from_w(free, ridges_arrays, w):
     shears applied innermost (last) first. Each moves every parameter j but its leader
     and held parameter by y_j, j's profile optimum at their t (`Ridge`): unit Jacobian,
     and a ridge curved along the leader's axis made straight."""
-    for arrays in reversed(tuple(ridges_arrays)):
-        w = w + _shear(free, arrays, w)
+    return _u_of_w(*_t_bounds(free), tuple(ridges_arrays), w)
+
+
+@jax.jit
+def _u_of_w(lo, hi, ridges_arrays, w):
+    for arrays in reversed(ridges_arrays):
+        w = w + _shear(lo, hi, arrays, w)
     return w
 
 
 def w_from_u(free, ridges_arrays, u):
     """`u_from_w` inverted."""
+    return _w_of_u(*_t_bounds(free), tuple(ridges_arrays), u)
+
+
+@jax.jit
+def _w_of_u(lo, hi, ridges_arrays, u):
     for arrays in ridges_arrays:
-        u = u - _shear(free, arrays, u)
+        u = u - _shear(lo, hi, arrays, u)
     return u
 
 
@@ -434,7 +461,7 @@ def _profile(problem: Problem, t_start, i: int, per_side: int, also: int = -1):
     χ², points where the model failed left out."""
     from .calibration import pinned_walk
 
-    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    lo, hi = _t_bounds(problem.free)
     margin, held = 0.01 * (hi[i] - lo[i]), (also, float(t_start[also]) if also >= 0 else 0.0)
     x0 = float(t_start[i])
     walks = [np.array([x0])] + [x0 + np.arange(1, per_side + 1) / per_side * (end - x0)
@@ -475,7 +502,7 @@ def trace_ridge(problem: Problem, t_best, cov, per_side: int = 8) -> Ridge:
     ranges off their bounds, and its profile is the shear; where none does, the ridge runs
     into a corner of the box, which no smooth shear follows, and the first candidate's
     profile is kept without one."""
-    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    lo, hi = _t_bounds(problem.free)
     traced = []
     for i in _leading(cov, (hi - lo) / np.sqrt(12.0)):
         x, t, chi2 = _profile(problem, t_best, i, per_side)
@@ -507,7 +534,7 @@ def trace_second_ridge(problem: Problem, t_best, cov, ridge: Ridge, per_side: in
     if not straightens(ridge):
         return None
     i = ridge.leader
-    lo, hi, _ = (np.asarray(b) for b in _t_bounds(problem.free))
+    lo, hi = _t_bounds(problem.free)
     scale = (hi - lo) / np.sqrt(12.0)
     given = cov - np.outer(cov[:, i], cov[i]) / cov[i, i]
     j = _leading(given, scale, exclude=(i,))[0]
@@ -696,6 +723,7 @@ def _leader_v(correction: Correction, z_lead, iterations: int = 60):
     return jnp.where(z_lead < c.q_z[0], below, jnp.where(z_lead > c.q_z[-1], beyond, 0.5 * (lo + hi)))
 
 
+@jax.jit
 def z_from_v(correction: Correction, v):
     """z_l = g(v_l) for the leader l and z_j = m_j(z_l) + s_j(z_l)·v_j for every other
     j, with ln|dz/dv| = ln g'(v_l) + Σ_j ln s_j(z_l): a triangular map, one to one
@@ -707,6 +735,7 @@ def z_from_v(correction: Correction, v):
     return jnp.where(lead, z_lead[..., None], z), jnp.sum(log_s, axis=-1) + log_g
 
 
+@jax.jit
 def v_from_z(correction: Correction, z):
     """`z_from_v` inverted."""
     z = jnp.asarray(z)
@@ -716,8 +745,6 @@ def v_from_z(correction: Correction, z):
     return jnp.where(lead, _leader_v(correction, z_lead)[..., None], (z - m) * jnp.exp(-log_s))
 
 
-# compiled once for the warmup's refits (eager, their first calls take seconds)
-_z_from_v, _v_from_z = jax.jit(z_from_v), jax.jit(v_from_z)
 _mean_curve = jax.jit(lambda correction, x: _along_leader(correction, x)[0])
 
 
@@ -848,9 +875,9 @@ def refit_correction(path, end, old: Correction):
     part's positions `path` (chains, steps, k) in the coordinates v of the correction
     `old` it ran with, and the chains' end points in the new v."""
     k = path.shape[-1]
-    z = np.asarray(_z_from_v(old, jnp.asarray(path[:, path.shape[1] // 2 :].reshape(-1, k)))[0])
+    z = np.asarray(z_from_v(old, jnp.asarray(path[:, path.shape[1] // 2 :].reshape(-1, k)))[0])
     correction = fit_correction(z, int(old.lead))
-    return correction, np.asarray(_v_from_z(correction, _z_from_v(old, jnp.asarray(end))[0]))
+    return correction, np.asarray(v_from_z(correction, z_from_v(old, jnp.asarray(end))[0]))
 
 
 def sample(problem: Problem, t_best, jacobian, settings: SamplerSettings = SamplerSettings(), progress=None) -> Draws:
