@@ -195,7 +195,8 @@ def test_line_relaxation_contracts_as_line_sweeps_predicts():
     assert line_sweeps(200, 8.0) == 0  # ρ = 0.93: multigrid
 
 
-@pytest.mark.parametrize("nx", [2, 13, 40])
+# the default run: 2 and 13 cells along x; 40 (the deepest hierarchy) with `-m slow`
+@pytest.mark.parametrize("nx", [2, 13, pytest.param(40, marks=pytest.mark.slow)])
 def test_multigrid_contracts_for_any_cell_aspect_ratio(nx):
     """3 V-cycles (the default) leave ≤ 2 % of the error for cells from 0.3 to 100
     times shorter than the strip is thick — line relaxation alone needs ever more sweeps
