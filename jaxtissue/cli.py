@@ -432,6 +432,7 @@ def summary(result, regime: str) -> dict:
 
 
 def cmd_cycle(args) -> int:
+    import equinox as eqx
     import jax.numpy as jnp
 
     from . import io, plots
@@ -448,9 +449,14 @@ def cmd_cycle(args) -> int:
     io.check_output_folder(args.out, args.overwrite)
     grid = BeamGrid(n_segments=args.segments, steps_per_cycle=args.steps)
     si = params.si()
-    material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), args.ecm), si)
-    beam = Beam(Geometry.from_params(si, protocol.pins), material, grid)
-    cycle = loading_cycle(beam, protocol.period_s, protocol.post_displacement_mm * 1e-3, protocol.hold_fraction, keep_fields=True)
+
+    @eqx.filter_jit  # one program (called eagerly, each operation would compile on its own)
+    def one_cycle(ecm, period_s, u_max_m, hold_fraction):
+        material = Material.from_ecm(jnp.full((args.segments - 1, args.ny), ecm), si)
+        beam = Beam(Geometry.from_params(si, protocol.pins), material, grid)
+        return beam, loading_cycle(beam, period_s, u_max_m, hold_fraction, keep_fields=True)
+
+    beam, cycle = one_cycle(*map(jnp.asarray, (args.ecm, protocol.period_s, protocol.post_displacement_mm * 1e-3, protocol.hold_fraction)))
     if bool(cycle.failed):
         from .result import RESULTS
 

@@ -26,13 +26,17 @@ def static_elastica(beam, u_m, increments=100):
     """Drained equilibrium at end shortening u: continuation along a ramp that starts
     gently, as the loading waveform does (the straight beam is a bifurcation point)."""
     ramp = u_m * (1 - np.cos(0.5 * np.pi * np.arange(1, increments + 1) / increments))
+    z, converged = _ramped_equilibria(beam, jnp.asarray(ramp))
+    assert bool(jnp.all(converged))
+    return z
 
+
+@eqx.filter_jit
+def _ramped_equilibria(beam, ramp):
     def step(z, u):
         return beam.equilibrium(u, z)
 
-    z, converged = jax.lax.scan(step, beam.rest_state(), jnp.asarray(ramp))
-    assert bool(jnp.all(converged))
-    return z
+    return jax.lax.scan(step, beam.rest_state(), ramp)
 
 
 @pytest.mark.parametrize("u_mm, deflection_mm", [(2.5, 4.87), (5.0, 6.66), (10.0, 8.72)])
@@ -175,7 +179,8 @@ def test_structured_jacobian_equals_forward_mode(P_over_PE):
     z = (beam.rest_state() + 0.1 * jax.random.normal(key1, (21,))).at[-1].set(P_over_PE)
     a = 1e2 * jax.random.normal(key2, beam.material.E.shape)
     args = (1e-3, a, 0.1 * a)
-    np.testing.assert_allclose(beam.jacobian(z, args), jax.jacfwd(beam.residual)(z, args), rtol=1e-12, atol=1e-12)
+    structured, forward = eqx.filter_jit(lambda b, z, args: (b.jacobian(z, args), jax.jacfwd(b.residual)(z, args)))(beam, z, args)
+    np.testing.assert_allclose(structured, forward, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("P_over_PE", [0.9, -0.7, 0.0, 3.5])
@@ -194,13 +199,15 @@ def test_structured_newton_solve_equals_dense_lu(P_over_PE):
 def test_equilibrium_derivative_is_the_implicit_function_theorem():
     """d(post force)/dE of a drained equilibrium against central differences."""
     base = uniform_beam(n_segments=20, ny=8, law="neo-hookean")
+    start = static_elastica(base, 2e-3)  # Newton's start, the same for every E
 
+    @jax.jit
     def force(scale):
         beam = eqx.tree_at(lambda b: b.material.E, base, base.material.E * scale)
-        z, _ = beam.equilibrium(2e-3, static_elastica(beam, 2e-3))
+        z, _ = beam.equilibrium(2e-3, start)
         return z[-1] * beam.euler_load()
 
-    g = jax.grad(force)(1.0)
+    g = jax.jit(jax.grad(force))(1.0)
     h = 1e-4
     fd = (force(1 + h) - force(1 - h)) / (2 * h)
     assert float(g) == pytest.approx(float(fd), rel=1e-6)
@@ -238,5 +245,6 @@ def test_prepared_section_constants_change_nothing():
     z = (beam.rest_state() + 0.05 * jax.random.normal(key1, (n + 1,))).at[-1].set(0.8)
     a = 1e2 * jax.random.normal(key2, (n - 1, ny))
     args = (1e-3, a, 0.1 * a)
-    np.testing.assert_allclose(prepared.residual(z, args), beam.residual(z, args), rtol=1e-13, atol=1e-15)
-    np.testing.assert_allclose(prepared.jacobian(z, args), beam.jacobian(z, args), rtol=1e-13, atol=1e-15)
+    both = eqx.filter_jit(lambda b, z, args: (b.residual(z, args), b.jacobian(z, args)))
+    for a, b in zip(both(prepared, z, args), both(beam, z, args)):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
