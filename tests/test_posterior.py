@@ -238,6 +238,26 @@ class _RidgeInSeconds(_StandIn):
         return jnp.stack([(t[0] - 5e-6) / 1e-6, (t[1] - 0.9 * t[0] - 1e-6) / 1e-7])
 
 
+RIDGE_IN_SECONDS_SD = np.array([1e-6, math.hypot(0.9e-6, 1e-7)])  # the Gaussian's SDs of θ₁, θ₂
+
+
+def test_whitening_is_at_home_in_any_units():
+    """The sampler's coordinates on a ridge in parameters ~1e-5 wide (linear
+    coordinates): standard normal z maps to the Gaussian's SDs in t, centred within
+    half an SD of its mean (the centre comes from the profile's knots), so the mass
+    matrix's adaptation sees O(1) scales (the draws themselves:
+    test_sample_is_at_home_in_any_units, slow)."""
+    problem = _RidgeInSeconds()
+    t_best = jnp.asarray([5e-6, 5.5e-6])
+    white = post.whitening(problem, t_best, jax.jacfwd(problem.residuals)(t_best))
+    z = np.random.default_rng(0).normal(size=(4000, 2))
+    t = np.asarray(post.t_from_u(problem.free, post.u_from_z(problem.free, white.args(), jnp.asarray(z))))
+    np.testing.assert_allclose(t.std(axis=0), RIDGE_IN_SECONDS_SD, rtol=0.1)
+    assert np.all(np.abs(t.mean(axis=0) - [5e-6, 5.5e-6]) < 0.5 * RIDGE_IN_SECONDS_SD)
+    assert np.all(np.abs(white.z0) < 5)  # the chains' starts: O(1) in z
+
+
+@pytest.mark.slow  # the default run: test_whitening_is_at_home_in_any_units
 def test_sample_is_at_home_in_any_units():
     """`post.sample` on a ridge in parameters ~1e-5 wide (linear coordinates): it runs in
     whitened coordinates, so the mass matrix's adaptation sees O(1) scales; means and
@@ -248,7 +268,7 @@ def test_sample_is_at_home_in_any_units():
     az = post.import_arviz()
     ess = np.asarray(az.ess(az.from_dict(posterior={"t": draws.t}))["t"].values)
     mean, sd = draws.t.reshape(-1, 2).mean(axis=0), draws.t.reshape(-1, 2).std(axis=0)
-    exact_sd = np.array([1e-6, math.hypot(0.9e-6, 1e-7)])
+    exact_sd = RIDGE_IN_SECONDS_SD
     print(f"ridge in 1/s: means {mean} (exact 5e-6, 5.5e-6), SDs {sd} (exact {exact_sd}), ESS {ess.round()}, "
           f"{draws.leapfrog_steps.mean():.1f} leapfrog steps a draw")
     assert np.all(np.abs(mean - [5e-6, 5.5e-6]) < 4 * exact_sd / np.sqrt(ess))
