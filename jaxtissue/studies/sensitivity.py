@@ -1,7 +1,9 @@
 """Local sensitivities: d ln(output)/d ln(parameter) of a run's final outputs for every
-parameter and protocol field, one reverse-mode pass per output (`jax.jacrev`)."""
+parameter and protocol field, one reverse-mode pass per output."""
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -33,8 +35,7 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
         r = simulate(p, q, t_end_s, **{**simulate_kw, "save": "end"})
         return jnp.stack([getattr(r, k)[-1] for k in SENSITIVITY_OUTPUTS])
 
-    # jacrev: one reverse pass per output (vmapped over the outputs' cotangents)
-    values, (gp, gq) = jax.jit(lambda p, q: (outputs(p, q), jax.jacrev(outputs, argnums=(0, 1))(p, q)))(params, protocol)
+    values, (gp, gq) = _values_and_jacobian(outputs, params, protocol)
     out = {}
     for i, key in enumerate(SENSITIVITY_OUTPUTS):
         y = float(values[i])
@@ -45,3 +46,12 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
             row |= {n: float(getattr(gq, n)[i] * getattr(protocol, n) / y) for n in PROTOCOL_FIELDS}
         out[key] = row
     return out
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _values_and_jacobian(outputs, params, protocol):
+    """`outputs(params, protocol)` and its Jacobian from one forward pass (`jax.vjp`),
+    the reverse passes vmapped over the outputs' unit cotangents (as `jax.jacrev` does,
+    which would run the forward pass again for the values)."""
+    values, pullback = jax.vjp(outputs, params, protocol)
+    return values, jax.vmap(pullback)(jnp.eye(values.size, dtype=values.dtype))
