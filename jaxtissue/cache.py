@@ -199,8 +199,8 @@ class _Entry:
     """A compiled program taking and giving flat lists of arrays, and `skeleton`: its
     result with `_Out` where the arrays go (what `_save` pickles)."""
 
-    def __init__(self, compiled, skeleton):
-        self.compiled, self.skeleton = compiled, skeleton
+    def __init__(self, compiled, skeleton, callbacks: bool = False):
+        self.compiled, self.skeleton, self.callbacks = compiled, skeleton, callbacks
         self.parts, self.structure = _flatten(skeleton)
 
     def __call__(self, leaves):
@@ -230,17 +230,23 @@ def _compile(fn, treedef, static, leaves, key: str) -> _Entry:
     def compiled_as(name):
         flat.__name__ = flat.__qualname__ = name
         before = _cache_hits()
-        return jax.jit(flat).lower(*leaves).compile(), _cache_hits() > before
+        lowered = jax.jit(flat).lower(*leaves)
+        return lowered, lowered.compile(), _cache_hits() > before
 
     name = f"{fn.__name__}_{key[:12]}"
-    compiled, from_jax_cache = compiled_as(name)
+    lowered, compiled, from_jax_cache = compiled_as(name)
     if from_jax_cache:
         # on the CPU an executable that JAX loaded from its cache serialises without its
         # kernels ("Function ... not found" in the next process): compile it afresh
         import secrets
 
-        compiled, _ = compiled_as(f"{name}_{secrets.token_hex(4)}")
-    return _Entry(compiled, box["skeleton"])
+        lowered, compiled, _ = compiled_as(f"{name}_{secrets.token_hex(4)}")
+    return _Entry(compiled, box["skeleton"], _HOST_CALLBACK.search(lowered.as_text()) is not None)
+
+
+_HOST_CALLBACK = re.compile(r"custom_call @\w*python\w*callback")
+"""How a host callback (`jax.debug.callback`, `jax.pure_callback`) appears in a lowered
+program: a call into this Python process, which a saved program cannot make."""
 
 
 _hits = threading.local()
@@ -270,7 +276,7 @@ def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
 
     from .io import atomic_write
 
-    if getattr(getattr(entry.compiled._executable, "_unloaded_executable", None), "host_callbacks", None):
+    if entry.callbacks:
         return  # its callbacks live in this process only
     try:
         blob, _, _ = serialize(entry.compiled)
