@@ -35,7 +35,7 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
         r = simulate(p, q, t_end_s, **{**simulate_kw, "save": "end"})
         return jnp.stack([getattr(r, k)[-1] for k in SENSITIVITY_OUTPUTS])
 
-    values, (gp, gq) = _values_and_jacobian(outputs, params, protocol)
+    values, (gp, gq) = jax.jit(functools.partial(_values_and_jacobian, outputs))(params, protocol)  # freed with `outputs`
     out = {}
     for i, key in enumerate(SENSITIVITY_OUTPUTS):
         y = float(values[i])
@@ -48,7 +48,6 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
     return out
 
 
-@functools.partial(jax.jit, static_argnums=0)
 def _values_and_jacobian(outputs, params, protocol):
     """`outputs(params, protocol)` and its Jacobian from one forward pass (`jax.vjp`),
     the reverse passes vmapped over the outputs' unit cotangents (as `jax.jacrev` does,
