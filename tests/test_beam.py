@@ -246,5 +246,5 @@ def test_prepared_section_constants_change_nothing():
     a = 1e2 * jax.random.normal(key2, (n - 1, ny))
     args = (1e-3, a, 0.1 * a)
     both = eqx.filter_jit(lambda b, z, args: (b.residual(z, args), b.jacobian(z, args)))
-    for a, b in zip(both(prepared, z, args), both(beam, z, args)):
-        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
+    for got, want in zip(both(prepared, z, args), both(beam, z, args)):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-15)
