@@ -877,12 +877,25 @@ def console() -> None:
     the interpreter's teardown of the loaded libraries (every file is written
     and closed by then). A process of a multi-process sweep (`jax.distributed`) leaves
     through `sys.exit`, whose exit handlers shut the group down."""
+    _collect_less()
     code = main()
     sys.stdout.flush()
     sys.stderr.flush()
     if _joined_a_group():
         sys.exit(code)
     os._exit(code)
+
+
+def _collect_less() -> None:
+    """Python's cycle collector tuned for a command's process: the objects made so far
+    (the libraries imported) frozen, never scanned again, and a collection every 50 000
+    new objects instead of 700. JAX's tracing makes many short-lived objects: with
+    the defaults a first `reproduce` took 30.5 s against 28.6 s, a first `simulate
+    --regime flex` 7.4 s against 7.2 s."""
+    import gc
+
+    gc.freeze()
+    gc.set_threshold(50_000, 10, 10)
 
 
 def _joined_a_group() -> bool:
