@@ -890,8 +890,8 @@ def _collect_less() -> None:
     """Python's cycle collector tuned for a command's process: the objects made so far
     (the libraries imported) frozen, never scanned again, and a collection every 50 000
     new objects instead of 700. JAX's tracing makes many short-lived objects: with
-    the defaults a first `reproduce` took 30.5 s against 28.6 s, a first `simulate
-    --regime flex` 7.4 s against 7.2 s."""
+    the defaults a first `reproduce` took 29.4–30.8 s against 26.8–28.6 s, a first
+    `simulate --regime flex` 7.4 s against 7.2 s."""
     import gc
 
     gc.freeze()
