@@ -21,7 +21,7 @@ import pathlib
 import sys
 import time
 
-from jaxtissue.cache import use_fast_compilation
+from jaxtissue.cache import collect_less, use_fast_compilation
 
 FAST = "--xla-defaults" not in sys.argv and use_fast_compilation()  # as the command line, before JAX starts
 
@@ -44,6 +44,8 @@ from jaxtissue.growth import GrowthModel, has_cell_transport  # noqa: E402
 from jaxtissue.params import nondimensionalise  # noqa: E402
 from jaxtissue.protocol import interval_bounds  # noqa: E402
 from jaxtissue.simulate import default_o2_sweeps, flex_cycle, growth_solve  # noqa: E402
+
+collect_less()  # Python's cycle collector as the command line sets it, after the imports
 
 T_END = 2.0e6
 GRID = jt.Grid(nx=50, ny=40)

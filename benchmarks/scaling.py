@@ -19,7 +19,7 @@ from __future__ import annotations
 import sys
 import time
 
-from jaxtissue.cache import use_fast_compilation
+from jaxtissue.cache import collect_less, use_fast_compilation
 
 FAST = "--xla-defaults" not in sys.argv and use_fast_compilation()  # as the command line, before JAX starts
 
@@ -27,6 +27,8 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxtissue as jt  # noqa: E402
+
+collect_less()  # Python's cycle collector as the command line sets it, after the imports
 
 GRIDS = [(50, 40), (100, 80), (200, 160)]
 LARGE = (400, 320)

@@ -25,7 +25,7 @@ import pathlib
 import sys
 import time
 
-from jaxtissue.cache import use_fast_compilation
+from jaxtissue.cache import collect_less, use_fast_compilation
 
 if "--xla-defaults" not in sys.argv:
     use_fast_compilation()  # as the command line, before JAX starts
@@ -39,6 +39,8 @@ import scipy_reference  # noqa: E402
 
 import jaxtissue as jt  # noqa: E402
 from jaxtissue.protocol import save_times  # noqa: E402
+
+collect_less()  # Python's cycle collector as the command line sets it, after the imports
 
 NY = 200
 T = jt.THREE_WEEKS_S

@@ -14,7 +14,8 @@ with host callbacks (progress bars fed from inside a run) are never cached.
 `use_fast_compilation()` (also the command line's) has XLA compile CPU programs with
 its classic fusion emitter, which for jaxtissue's programs compiles ~30–40 % faster with
 the same run time and results equal to round-off; `JAXTISSUE_XLA_DEFAULTS=1` keeps XLA's
-defaults.
+defaults. `collect_less()` (the command line's too) keeps Python's cycle collector from
+rescanning the imported libraries while JAX traces.
 """
 
 from __future__ import annotations
@@ -84,6 +85,20 @@ def _jaxlib_knows(flag: bytes) -> bool:
         except (OSError, ValueError):
             continue
     return False
+
+
+def collect_less() -> None:
+    """Python's cycle collector set for tracing (docs/numerics.md, "Compilation"): the
+    objects made so far (the libraries imported) frozen, never scanned again, and a
+    collection every 50 000 new objects instead of 700. JAX's tracing makes many
+    short-lived objects, and with Python's defaults the collector rescans every
+    imported library's objects again and again (a first `jaxtissue reproduce` took
+    29.4–30.8 s against 26.8–28.6 s). A setting of the process, for a program's entry
+    point after its imports, not for a library."""
+    import gc
+
+    gc.freeze()
+    gc.set_threshold(50_000, 10, 10)
 
 
 def default_folder() -> pathlib.Path | None:

@@ -28,7 +28,7 @@ import warnings
 
 import numpy as np
 
-from .cache import enable_compilation_cache, saved_executables, use_fast_compilation
+from .cache import collect_less, enable_compilation_cache, saved_executables, use_fast_compilation
 from .grid import DEFAULT_SHAPES
 from .io import InputError, RunError, ending
 from .limits import MAX_STEPS
@@ -877,25 +877,13 @@ def console() -> None:
     the interpreter's teardown of the loaded libraries (every file is written
     and closed by then). A process of a multi-process sweep (`jax.distributed`) leaves
     through `sys.exit`, whose exit handlers shut the group down."""
-    _collect_less()
+    collect_less()  # the libraries imported so far: jax, equinox
     code = main()
     sys.stdout.flush()
     sys.stderr.flush()
     if _joined_a_group():
         sys.exit(code)
     os._exit(code)
-
-
-def _collect_less() -> None:
-    """Python's cycle collector tuned for a command's process: the objects made so far
-    (the libraries imported) frozen, never scanned again, and a collection every 50 000
-    new objects instead of 700. JAX's tracing makes many short-lived objects: with
-    the defaults a first `reproduce` took 29.4–30.8 s against 26.8–28.6 s, a first
-    `simulate --regime flex` 7.4 s against 7.2 s."""
-    import gc
-
-    gc.freeze()
-    gc.set_threshold(50_000, 10, 10)
 
 
 def _joined_a_group() -> bool:

@@ -30,17 +30,10 @@ install_import_hook(["jaxtissue.operators", "jaxtissue.state", "jaxtissue.growth
                     "beartype.beartype")
 
 # after the hook, since it imports jaxtissue
-from jaxtissue.cache import use_fast_compilation  # noqa: E402
+from jaxtissue.cache import collect_less, use_fast_compilation  # noqa: E402
 
 use_fast_compilation()  # in XLA_FLAGS, which the CLI tests' subprocesses inherit
-
-# Python's cycle collector as the command line tunes it (jaxtissue/cli.py, `console`):
-# tracing makes many short-lived objects, and with the defaults the collector rescans
-# every imported library's objects (test_gradients.py and test_sweep.py: 44.6 s against 42.8 s)
-import gc  # noqa: E402
-
-gc.freeze()
-gc.set_threshold(50_000, 10, 10)
+collect_less()  # as the command line (test_gradients.py and test_sweep.py: 42.8 s against 44.6 s)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the independent SciPy reference, shared helpers
