@@ -12,7 +12,8 @@ run of each that reaches it is compared:
   pass versus central finite differences of the SciPy solve (2 solves per parameter),
   each at the loosest tolerance whose gradient is within `GRAD_TARGET` of a tight one;
 * compile time of the jitted forward run;
-* per step: wall time and, alone, the O2 solve's Thomas factor and stage solves.
+* per step: wall time and, alone, the O2 solve's Thomas factor and stage solves; and
+  a step's cost against the number of cells (25 to 800), fitted by a line.
 
     python benchmarks/static.py [--xla-defaults]
       (--xla-defaults: XLA's default CPU emitters instead of the command line's
@@ -73,15 +74,28 @@ def same_equations(p):
     return p.replace(D_c=base.D_c, chi=base.chi)
 
 
-def jax_forward(rtol):
+def jax_forward(rtol, ny=NY):
     options = jt.SolverOptions(rtol=rtol, atol=rtol * 1e-3)
 
     @jax.jit
     def run(p):
-        r = jt.simulate(same_equations(p), t_end_s=T, grid=jt.Grid(ny=NY), options=options)
+        r = jt.simulate(same_equations(p), t_end_s=T, grid=jt.Grid(ny=ny), options=options)
         return {k: getattr(r, k)[-1] for k in KEYS} | {"steps": r.num_steps}
 
     return run
+
+
+def step_cost_by_cells(p, rtol=3e-5, cells=(25, 50, 100, 200, 400, 800)):
+    """Microseconds a step of the same run on 1-D grids of `cells` cells (best of 10),
+    and a least-squares line through them: what a step costs whatever the grid, and
+    per cell."""
+    costs = []
+    for ny in cells:
+        run = jax_forward(rtol, ny)
+        steps = int(run(p)["steps"])
+        costs.append(best_time(lambda: jax.block_until_ready(run(p)), 10) / steps * 1e6)
+    per_cell, fixed = np.polyfit(cells, costs, 1)
+    return costs, fixed, per_cell
 
 
 def jax_collagen(rtol):
@@ -155,6 +169,9 @@ def main():
     for (je, jt_, r), (se, st, _), n in zip(jax_runs, sp_runs, steps):
         print(f"{r:8.0e} | {je:13.1e} {jt_ * 1e3:8.2f} {n:6d} {jt_ / n * 1e6:8.1f} | {se:13.1e} {st * 1e3:8.2f}")
     print(f"of a step: the O2 solve's Thomas factor and 4 solves alone {thomas_solve_seconds() * 1e6:.1f} us")
+    costs, fixed, per_cell = step_cost_by_cells(p)
+    print("us a step at rtol 3e-5 on 25, 50, 100, 200, 400, 800 cells: " + ", ".join(f"{c:.1f}" for c in costs)
+          + f"; fitted {fixed:.1f} us + {per_cell:.3f} us per cell")
     print("\nfastest run reaching each accuracy target")
     for target in TARGETS:
         t_jax = min((t for e, t, _ in jax_runs if e <= target), default=float("nan"))
