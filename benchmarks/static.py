@@ -85,16 +85,20 @@ def jax_forward(rtol, ny=NY):
     return run
 
 
-def step_cost_by_cells(p, rtol=3e-5, cells=(25, 50, 100, 200, 400, 800)):
-    """Microseconds a step of the same run on 1-D grids of `cells` cells (best of 10),
-    and a least-squares line through them: what a step costs whatever the grid, and
-    per cell."""
+STEP_COST_CELLS = (25, 50, 100, 200, 400, 800)
+STEP_COST_RTOL = 3e-5
+
+
+def step_cost_by_cells(p):
+    """Microseconds a step of the same run at `STEP_COST_RTOL` on 1-D grids of
+    `STEP_COST_CELLS` cells (best of 10), and a least-squares line through them: what a
+    step costs whatever the grid, and per cell."""
     costs = []
-    for ny in cells:
-        run = jax_forward(rtol, ny)
+    for ny in STEP_COST_CELLS:
+        run = jax_forward(STEP_COST_RTOL, ny)
         steps = int(run(p)["steps"])
         costs.append(best_time(lambda: jax.block_until_ready(run(p)), 10) / steps * 1e6)
-    per_cell, fixed = np.polyfit(cells, costs, 1)
+    per_cell, fixed = np.polyfit(STEP_COST_CELLS, costs, 1)
     return costs, fixed, per_cell
 
 
@@ -170,7 +174,7 @@ def main():
         print(f"{r:8.0e} | {je:13.1e} {jt_ * 1e3:8.2f} {n:6d} {jt_ / n * 1e6:8.1f} | {se:13.1e} {st * 1e3:8.2f}")
     print(f"of a step: the O2 solve's Thomas factor and 4 solves alone {thomas_solve_seconds() * 1e6:.1f} us")
     costs, fixed, per_cell = step_cost_by_cells(p)
-    print("us a step at rtol 3e-5 on 25, 50, 100, 200, 400, 800 cells: " + ", ".join(f"{c:.1f}" for c in costs)
+    print(f"us a step at rtol {STEP_COST_RTOL:g} on {', '.join(map(str, STEP_COST_CELLS))} cells: " + ", ".join(f"{c:.1f}" for c in costs)
           + f"; fitted {fixed:.1f} us + {per_cell:.3f} us per cell")
     print("\nfastest run reaching each accuracy target")
     for target in TARGETS:
