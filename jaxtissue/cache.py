@@ -92,9 +92,8 @@ def collect_less() -> None:
     objects made so far (the libraries imported) frozen, never scanned again, and a
     collection every 50 000 new objects instead of 700. JAX's tracing makes many
     short-lived objects, and with Python's defaults the collector rescans every
-    imported library's objects again and again (a first `jaxtissue reproduce` took
-    29.4–30.8 s against 26.8–28.6 s). A setting of the process, for a program's entry
-    point after its imports, not for a library."""
+    imported library's objects again and again. A setting of the process, for a
+    program's entry point after its imports, not for a library."""
     import gc
 
     gc.freeze()
