@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -18,7 +17,7 @@ from .beam import BeamGrid, loading_cycle
 from .coupling import beam_from_ecm, lumped_transport, with_rule_constant
 from .grid import Grid
 from .growth import GrowthModel, has_cell_transport
-from .numerics import ROS34PW2, ReproducibleSteps, Rescaled, Stacked, line_sweeps, replayed_scan, stack
+from .numerics import Rescaled, Stacked, line_sweeps, replayed_scan, stack
 from .params import Params, concrete_value, nondimensionalise
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
 from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
@@ -81,6 +80,8 @@ class SolverOptions(eqx.Module):
 
     def adjoint(self, checkpoints: int):
         """diffrax adjoint; `checkpoints` unless set in these options."""
+        import diffrax  # here and below, where a run is traced: a saved program runs without it
+
         if self.autodiff == "forward":
             return diffrax.ForwardMode()
         return diffrax.RecursiveCheckpointAdjoint(checkpoints=self.checkpoints or checkpoints)
@@ -88,6 +89,10 @@ class SolverOptions(eqx.Module):
     def controller(self, span_s):
         """diffrax step-size controller over an interval of `span_s` seconds, in the unit
         time s = (t − t0) / span_s that `growth_solve` integrates in."""
+        import diffrax
+
+        from .numerics import ReproducibleSteps
+
         if self.fixed_steps is None:
             pid = diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s / span_s)
             return ReproducibleSteps(pid, dt0=self.dt0_s / span_s)
@@ -97,6 +102,8 @@ class SolverOptions(eqx.Module):
 
 def _growth_code(sol):
     """Integer status code (`result.STATUS_ORDER`) of a growth solve."""
+    import diffrax
+
     return jnp.where(sol.result == diffrax.RESULTS.successful, 0, jnp.where(sol.result == diffrax.RESULTS.max_steps_reached, 1, 4))
 
 
@@ -110,6 +117,10 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     is in s): diffrax's time bounds are then constants, also where t0 and t1 are traced.
     o, c and m are integrated stacked in one array (`numerics.Stacked`); `sol.ys` is a
     `State` again."""
+    import diffrax
+
+    from .numerics import ROS34PW2
+
     span = t1 - t0
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=(ts - t0) / span)
     field = Stacked(model, jtu.tree_structure(y0))

@@ -103,6 +103,30 @@ def test_the_workflows_load_on_first_use():
         raise AssertionError("an unknown attribute must raise AttributeError")
 
 
+def test_the_solvers_libraries_load_on_first_use():
+    """`import jaxtissue` and the command line leave diffrax, optimistix and lineax
+    unimported until a run is traced (a run loaded as a saved program never needs them);
+    the numerics built on them still come from `jaxtissue.numerics`."""
+    import subprocess
+    import sys
+
+    code = ("import sys, jaxtissue, jaxtissue.cli; "
+            "print(*(m in sys.modules for m in ('diffrax', 'optimistix', 'lineax'))); "
+            "from jaxtissue.numerics import ROS34PW2, LevenbergMarquardt; "
+            "print(ROS34PW2.__module__, LevenbergMarquardt.__module__, 'diffrax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout.splitlines()
+    assert out == ["False False False", "jaxtissue.numerics._rosenbrock jaxtissue.numerics._least_squares True"]
+    import jaxtissue.numerics as numerics
+
+    assert {"ROS34PW2", "quantise", "Stacked"} <= set(dir(numerics))
+    try:
+        numerics.no_such_solver
+    except AttributeError as err:
+        assert "no_such_solver" in str(err)
+    else:
+        raise AssertionError("an unknown attribute must raise AttributeError")
+
+
 def _python_files():
     for folder in ("jaxtissue", "tests", "benchmarks", "calibrate"):
         yield from (ROOT / folder).rglob("*.py")
