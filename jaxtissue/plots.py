@@ -23,6 +23,18 @@ def _label(name: str) -> str:
     return out.label or f"{out.description.split(' (')[0]} ({out.unit})"
 
 
+def _panel_row(ncols: int, width_in: float, height_in: float = 3.8, title: bool = True):
+    """A figure of `ncols` panels side by side with margins fixed in inches (room for
+    tick labels of up to ~7 characters and an axis label): constrained layout would
+    measure every label by drawing the figure an extra time (~0.1 s a figure)."""
+    fig, axes = plt.subplots(1, ncols, figsize=(width_in, height_in))
+    left, right, gap, bottom, top = 0.85, 0.15, 0.95, 0.55, 0.45 if title else 0.15
+    panel = (width_in - left - right - (ncols - 1) * gap) / ncols
+    fig.subplots_adjust(left=left / width_in, right=1 - right / width_in, bottom=bottom / height_in, top=1 - top / height_in,
+                        wspace=gap / panel)
+    return fig, axes
+
+
 def profile_days(ts, wanted=(0, 3, 7, 14, 21)):
     """Indices of the save times closest to the wanted days, and the last one."""
     ts = np.asarray(ts)
@@ -34,7 +46,7 @@ def profiles(result, path, title="static culture"):
     """Transmural O2, cell and ECM profiles at the mid-section over time (Fig. 5)."""
     ts = np.asarray(result.ts)
     y_mm = 10 * np.asarray(result.y_cm)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8), constrained_layout=True)
+    fig, axes = _panel_row(3, 12)
     labels = (("profile_o", "O2  o (-)"), ("profile_c", "cells  c (-)"), ("profile_m", "ECM  m (-)"))
     colours = plt.cm.viridis(np.linspace(0, 0.9, len(profile_days(ts))))
     for ax, (key, label) in zip(axes, labels):
@@ -67,7 +79,7 @@ def time_series(results: dict, path, bands: dict | None = None):
     `results` maps a label (its regime first: "static", "flex…") to a `Result`;
     `bands` (optional) maps some labels to {"time_s": times, key: (q05, q50, q95)}:
     the calibrated model's posterior predictive, drawn beside the runs."""
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    fig, axes = _panel_row(3, 13)
     for (label, result), colour in zip(results.items(), plt.cm.tab10.colors):
         days = np.asarray(result.ts) / DAY_S
         regime = "flex" if label.startswith("flex") else "static"
@@ -96,7 +108,7 @@ def time_series(results: dict, path, bands: dict | None = None):
 def rigidity_and_force(results: dict, path, bands: dict | None = None):
     """Flexural rigidity EI and peak post force versus time (Fig. 10), with the
     calibrated model's bands (`time_series`) where given."""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    fig, axes = _panel_row(2, 10, title=False)
     for (label, result), colour in zip(results.items(), plt.cm.tab10.colors):
         days = np.asarray(result.ts) / DAY_S
         axes[0].plot(days, 1e6 * np.asarray(result.EI_N_m2), color=colour, label=label)
