@@ -379,7 +379,7 @@ def cmd_simulate(args) -> int:
     from . import plots
 
     with io.output_folder(args.out, args.overwrite) as tmp:
-        io.write_netcdf(result.to_xarray(), tmp / "result.nc")
+        io.write_netcdf(result.contents(), tmp / "result.nc")
         io.write_json(tmp / "summary.json", summary(result, args.regime) | {"warnings": notes} |
                       ({"lumping": {"rule": protocol.lumping, "C": params.lumping_C, "why": lumping_note}} if lumping_note else {}))
         io.write_params_toml(params, tmp / "params.toml", notes=(lumping_note,) if lumping_note else ())
@@ -391,9 +391,13 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-_WRITERS = ("jaxtissue.plots", "xarray", "h5netcdf", "dask.array", "dask.distributed")
-"""The writers' libraries, imported while a command's runs go on (xarray looks for
-dask's arrays, its netCDF writer for dask's scheduler)."""
+_WRITERS = ("jaxtissue.plots", "h5netcdf")
+"""The writers' libraries, imported while a command's runs go on (a `Result`'s NetCDF
+file is written without xarray: `io.write_netcdf`)."""
+
+_XARRAY = ("xarray", "dask.array", "dask.distributed")
+"""xarray, and the parts of dask it imports to look for dask's arrays and, writing
+NetCDF, for dask's scheduler."""
 
 
 def _import_in_background(*modules: str):
@@ -502,7 +506,7 @@ def cmd_reproduce(args) -> int:
     io.check_output_folder(args.out, args.overwrite)
     progress = args.progress if args.progress is not None else \
         _long_run(int(np.prod(DEFAULT_SHAPES["flex"])), args.t_end, COUPLING_INTERVAL_S, "flex")
-    libraries = _import_in_background(*_WRITERS, "arviz")  # and what reads the shipped posterior
+    libraries = _import_in_background(*_WRITERS, *_XARRAY, "arviz")  # and what reads the shipped posterior
     results = reproduce.run_cases(params, t_end_s=args.t_end, progress=progress)
     libraries.join()
     failed = [name for name, r in results.items() if bool(r.failed)]

@@ -268,8 +268,32 @@ def output_folder(out, overwrite: bool = False, argument: str = "out"):
 
 
 def write_netcdf(dataset, path) -> None:
-    """`dataset` to NetCDF-4 (h5netcdf) via a temporary file, then rename."""
+    """`dataset` to NetCDF-4 via a temporary file, then rename: an `xarray.Dataset`
+    (xarray's h5netcdf engine), or `(variables, attrs)` as `Result.contents` gives them,
+    written with h5netcdf alone into the file xarray would write (without importing
+    xarray, which imports dask's arrays and scheduler to check for them: ~0.5 s)."""
     path = pathlib.Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    dataset.to_netcdf(tmp, engine="h5netcdf")
+    if isinstance(dataset, tuple):
+        _write_contents(*dataset, tmp)
+    else:
+        dataset.to_netcdf(tmp, engine="h5netcdf")
     os.replace(tmp, path)
+
+
+def _write_contents(variables: dict, attrs: dict, path) -> None:
+    """{name: (dims, values, attrs)} and global `attrs` as a NetCDF-4 file: each dimension
+    sized by the first variable that has it; floats with xarray's default fill value (NaN)."""
+    import h5netcdf
+
+    with h5netcdf.File(path, "w") as f:
+        for name, (dims, values, _) in variables.items():
+            for dim, size in zip(dims, np.shape(values)):
+                if dim not in f.dimensions:
+                    f.dimensions[dim] = size
+        for name, (dims, values, var_attrs) in variables.items():
+            values = np.asarray(values)
+            fill = {"fillvalue": np.nan} if values.dtype.kind == "f" else {}
+            var = f.create_variable(name, dims, values.dtype, data=values, **fill)
+            var.attrs.update(var_attrs)
+        f.attrs.update(attrs)

@@ -133,28 +133,33 @@ class Result(eqx.Module):
         """The index of the save time closest to `t_s`."""
         return int(np.argmin(np.abs(np.asarray(self.ts) - t_s)))
 
+    def contents(self) -> tuple[dict, dict]:
+        """What `to_xarray` and a run's result.nc hold, as NumPy arrays and plain values:
+        {name: (dims, values, attrs)} (the coordinates time_s, x_cm and y_cm first), with
+        units in each variable's attributes, and the dataset's attributes (the
+        parameters, the solver's steps and status)."""
+        coords = {
+            "time_s": (("time_s",), np.asarray(self.ts), dict(units="s", long_name="time since seeding")),
+            "x_cm": (("x_cm",), np.asarray(self.x_cm), dict(units="cm", long_name="position along the strip (cell centre)")),
+            "y_cm": (("y_cm",), np.asarray(self.y_cm), dict(units="cm", long_name="position across the thickness (cell centre)")),
+        }
+        values = {k: np.asarray(getattr(self, k)) for k in SERIES} | {k: np.asarray(getattr(self.final, k)) for k in ("o", "c", "m")}
+        variables = {k: (OUTPUTS[k].dims, v, dict(units=OUTPUTS[k].unit, long_name=OUTPUTS[k].description)) for k, v in values.items()}
+        attrs = self.params.as_dict() | dict(
+            solver_steps=int(np.asarray(self.num_steps)),
+            solver_failed=int(bool(np.asarray(self.failed))),
+            status=RESULTS[self.status] or "successful",
+            t_reached_s=float(np.asarray(self.t_reached_s)),
+        )
+        return coords | variables, attrs
+
     def to_xarray(self):
-        """An `xarray.Dataset` with units in each variable's attributes and the
+        """An `xarray.Dataset` of `contents`: units in each variable's attributes, the
         parameters in the dataset's."""
         import xarray as xr
 
-        series = {k: (OUTPUTS[k].dims, np.asarray(getattr(self, k))) for k in SERIES}
-        fields = {k: (OUTPUTS[k].dims, np.asarray(getattr(self.final, k))) for k in ("o", "c", "m")}
-        ds = xr.Dataset(
-            {**series, **fields},
-            coords=dict(time_s=np.asarray(self.ts), x_cm=np.asarray(self.x_cm), y_cm=np.asarray(self.y_cm)),
-        )
-        for name, out in OUTPUTS.items():
-            ds[name].attrs.update(units=out.unit, long_name=out.description)
-        ds["time_s"].attrs.update(units="s", long_name="time since seeding")
-        ds["x_cm"].attrs.update(units="cm", long_name="position along the strip (cell centre)")
-        ds["y_cm"].attrs.update(units="cm", long_name="position across the thickness (cell centre)")
-        ds.attrs.update(self.params.as_dict())
-        ds.attrs["solver_steps"] = int(np.asarray(self.num_steps))
-        ds.attrs["solver_failed"] = int(bool(np.asarray(self.failed)))
-        ds.attrs["status"] = RESULTS[self.status] or "successful"
-        ds.attrs["t_reached_s"] = float(np.asarray(self.t_reached_s))
-        return ds
+        variables, attrs = self.contents()
+        return xr.Dataset(variables, attrs=attrs)
 
 
 def observe(y: State, params: Params, grid: Grid) -> dict:

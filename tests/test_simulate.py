@@ -54,6 +54,24 @@ def test_to_xarray_has_units(fine_static):
     assert ds.attrs["k_c_max"] == pytest.approx(1.24e-5)
 
 
+def test_result_file_is_the_file_xarray_writes(fine_static, tmp_path):
+    """result.nc, written from `Result.contents` by h5netcdf alone, reads back as
+    `to_xarray` gives the run and as the file xarray writes from it, fill values
+    included; an `xarray.Dataset` goes through xarray."""
+    import xarray as xr
+
+    from jaxtissue import io
+
+    io.write_netcdf(fine_static.contents(), tmp_path / "direct.nc")
+    io.write_netcdf(fine_static.to_xarray(), tmp_path / "xarray.nc")
+    direct, via_xarray = (xr.open_dataset(tmp_path / f"{n}.nc", engine="h5netcdf").load() for n in ("direct", "xarray"))
+    xr.testing.assert_identical(direct, fine_static.to_xarray())
+    xr.testing.assert_identical(direct, via_xarray)
+    fills = [{n: str(d[n].encoding.get("_FillValue")) for n in d.variables} for d in (direct, via_xarray)]
+    assert fills[0] == fills[1] and set(fills[0].values()) == {"nan"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["direct.nc", "xarray.nc"]  # no temporary file left
+
+
 def test_jit_and_vmap_over_parameters():
     grid = jt.Grid(ny=16)
     base = jax.tree_util.tree_map(jnp.asarray, jt.paper_parameters())

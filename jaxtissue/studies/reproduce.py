@@ -134,7 +134,7 @@ def write_cases(results: dict, folder) -> None:
     plots.ecm_maps({k: results[k] for k in ("static", "flex", "flex_paper_rule")}, folder / "fig8_ecm_maps.png")
     (folder / "cases").mkdir()
     for name, r in results.items():
-        io.write_netcdf(r.to_xarray(), folder / "cases" / f"{name}.nc")
+        io.write_netcdf(r.contents(), folder / "cases" / f"{name}.nc")
 
 
 def write_report(results: dict, params, folder, bands: dict | None = None) -> None:
