@@ -429,7 +429,7 @@ def summary(result, regime: str) -> dict:
     out.update({k: getattr(result, k) for k in keys})
     if np.min(np.abs(np.asarray(result.ts) - THREE_WEEKS_S)) < 1e-6:
         i = result.index(THREE_WEEKS_S)
-        out["three_weeks"] = {k: float(getattr(result, k)[i]) for k in keys}
+        out["three_weeks"] = {k: float(np.asarray(getattr(result, k))[i]) for k in keys}  # indexed on the host: no JAX op to compile
     out["solver_steps"] = int(result.num_steps)
     out["params"] = result.params.as_dict()
     return out

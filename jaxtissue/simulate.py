@@ -282,6 +282,15 @@ def default_o2_sweeps(grid: Grid, params: Params) -> int:
     return line_sweeps(grid.nx, h * grid.nx / length)
 
 
+def _float_array(x):
+    """x as a float64 array: JAX's for a JAX array or tracer, NumPy's for a concrete
+    number (converted on the host: no JAX operation, which would compile a small program
+    of its own, before a run that may be loaded as a saved program)."""
+    if isinstance(x, (jax.Array, jax.core.Tracer)):
+        return jnp.asarray(x, dtype=float)
+    return np.asarray(x, dtype=float)
+
+
 def simulate(
     params: Params,
     protocol: Protocol | None = None,
@@ -358,8 +367,7 @@ def simulate(
     cell_transport = has_cell_transport(params)  # known before the floats become traced
     if options.o2_sweeps is None:
         options = dataclasses.replace(options, o2_sweeps=default_o2_sweeps(grid, params))
-    params = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), params)
-    protocol = jtu.tree_map(lambda x: jnp.asarray(x, dtype=float), protocol)
+    params, protocol = jtu.tree_map(_float_array, (params, protocol))
     if progress and protocol.regime == "flex":
         from tqdm.auto import tqdm
 
