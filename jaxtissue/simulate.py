@@ -58,6 +58,13 @@ class SolverOptions(eqx.Module):
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""
+    static_series: str = eqx.field(static=True, default="dense")
+    """How a static run saves its series: "dense", one growth solve saved at the save
+    times by its dense output (fewest steps), or "intervals", one solve per coupling
+    interval, each ending at a save time (at least one step per interval, as a flex
+    run's): diffrax checks "dense"'s save times with a host callback, so only
+    "intervals" can be kept as a saved or cached program (the command line's choice;
+    docs/numerics.md, "Compilation")."""
 
     def __check_init__(self):
         for name in ("rtol", "atol", "dt0_s", "dtmax_s"):
@@ -77,6 +84,8 @@ class SolverOptions(eqx.Module):
             raise ValueError("solver option store_float32 = True needs nest_intervals = True")
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
+        if self.static_series not in ("dense", "intervals"):
+            raise ValueError(f"solver option static_series = {self.static_series!r}; allowed: 'dense', 'intervals'")
 
     def adjoint(self, checkpoints: int):
         """diffrax adjoint; `checkpoints` unless set in these options."""
@@ -172,17 +181,21 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     sweeps = options.o2_sweeps or 0
     if protocol.regime == "static":
         model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport, o2_sweeps=sweeps)
-        sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
-        states = sol.ys
+        if end_only or options.static_series == "dense":
+            sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
+            states = sol.ys
+            num_steps, code = sol.stats["num_steps"], _growth_code(sol)
+        else:  # one solve per interval, ending at its save time (`SolverOptions.static_series`)
+            states, num_steps, code, t_fail = _static_by_intervals(model, y0, times, options, args, progress)
         series = jax.vmap(lambda y: observe(y, params, grid))(states)
         series["post_force_max_N"] = jnp.zeros(len(out_times))
         series["surface_strain_max"] = jnp.zeros(len(out_times))
         final = jtu.tree_map(lambda x: x[-1], states)
-        num_steps, code = sol.stats["num_steps"], _growth_code(sol)
-        reached = jnp.isfinite(series["collagen_mg_per_g"])
-        if end_only:  # a failed solve still leaves its last state at "t1": not valid there
-            reached &= code == 0
-        t_fail = jnp.max(jnp.where(reached, ts, times[0]))
+        if end_only or options.static_series == "dense":
+            reached = jnp.isfinite(series["collagen_mg_per_g"])
+            if end_only:  # a failed solve still leaves its last state at "t1": not valid there
+                reached &= code == 0
+            t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
         n_intervals = len(times) - 1
 
@@ -271,6 +284,25 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         t_reached_s=t_reached,
         params=params,
     )
+
+
+def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: SolverOptions, args, progress=False):
+    """A static run as one growth solve per interval [times[k], times[k+1]], each from
+    the last one's end state: the states at every save time, the steps, the status code
+    of the first failed solve (0 if none) and the save time it started from."""
+
+    def interval(y, k):
+        t0, t1 = jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
+        sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8)
+        y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
+        if progress:
+            jax.debug.callback(_Progress.tick, t1)
+        return y1, (y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32))
+
+    _, (ends, steps, codes) = jax.lax.scan(jax.checkpoint(interval), y0, jnp.arange(len(times) - 1))
+    states = jtu.tree_map(lambda a, b: jnp.concatenate([a[None], b]), y0, ends)
+    first = jnp.argmax(codes > 0)
+    return states, jnp.sum(steps), codes[first], jnp.asarray(times)[first]
 
 
 def default_o2_sweeps(grid: Grid, params: Params) -> int:
@@ -368,10 +400,10 @@ def simulate(
     if options.o2_sweeps is None:
         options = dataclasses.replace(options, o2_sweeps=default_o2_sweeps(grid, params))
     params, protocol = jtu.tree_map(_float_array, (params, protocol))
-    if progress and protocol.regime == "flex":
+    if progress and (protocol.regime == "flex" or options.static_series == "intervals" and save == "intervals"):
         from tqdm.auto import tqdm
 
-        _Progress.bar = tqdm(total=len(times) - 1, unit="interval", desc="flex culture")  # the save times are the interval bounds
+        _Progress.bar = tqdm(total=len(times) - 1, unit="interval", desc=f"{protocol.regime} culture")  # the save times are the interval bounds
     try:
         return cache.call(_simulate, params, protocol, grid, beam, (times, float(coupling_interval_s), save == "end"), options, initial_state, progress, cell_transport)
     finally:

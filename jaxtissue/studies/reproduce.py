@@ -15,7 +15,7 @@ from ..beam import BeamGrid
 from ..data import observations
 from ..protocol import T_END_S, THREE_WEEKS_S, Protocol
 from ..result import MEASURABLE
-from ..simulate import simulate
+from ..simulate import SolverOptions, simulate
 
 CASES = {
     "static": Protocol.static(),
@@ -62,7 +62,8 @@ def run_cases(params, t_end_s=T_END_S, progress=False, log=print, flex_grid=None
     differ only in period and amplitude: they run as one program (`_batch`)."""
     results = {}
     log("running static ...")
-    results["static"] = simulate(params, CASES["static"], t_end_s=t_end_s, progress=progress)
+    results["static"] = simulate(params, CASES["static"], t_end_s=t_end_s, progress=progress,
+                                 options=SolverOptions(static_series="intervals"))  # a program the cache keeps
     flex = [name for name, protocol in CASES.items() if protocol.regime == "flex"]
     log(f"running {', '.join(flex)} ...")
     results.update(zip(flex, _batch(params, [CASES[name] for name in flex], t_end_s, flex_grid, beam)))
