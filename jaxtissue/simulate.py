@@ -181,7 +181,8 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     sweeps = options.o2_sweeps or 0
     if protocol.regime == "static":
         model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport, o2_sweeps=sweeps)
-        if end_only or options.static_series == "dense":
+        one_solve = end_only or options.static_series == "dense"
+        if one_solve:
             sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
             states = sol.ys
             num_steps, code = sol.stats["num_steps"], _growth_code(sol)
@@ -191,16 +192,13 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
         series["post_force_max_N"] = jnp.zeros(len(out_times))
         series["surface_strain_max"] = jnp.zeros(len(out_times))
         final = jtu.tree_map(lambda x: x[-1], states)
-        if end_only or options.static_series == "dense":
+        if one_solve:
             reached = jnp.isfinite(series["collagen_mg_per_g"])
             if end_only:  # a failed solve still leaves its last state at "t1": not valid there
                 reached &= code == 0
             t_fail = jnp.max(jnp.where(reached, ts, times[0]))
     else:
         n_intervals = len(times) - 1
-
-        def bounds(k):  # (t0, t1) of interval k, from constants made where they are used
-            return jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
 
         def loading(theta, y, k):
             """The loading cycle at save time k: its lumped transport and outputs."""
@@ -214,10 +212,10 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             p = theta[0]
             model = GrowthModel(coeffs=nondimensionalise(p), grid=grid, transport=transport, cell_transport=cell_transport,
                                 o2_sweeps=sweeps)
-            sol = growth_solve(model, y, *bounds(k), None, options, (p, grid), checkpoints=8)  # the end state only
+            sol = growth_solve(model, y, *_bounds(times, k), None, options, (p, grid), checkpoints=8)  # the end state only
             y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
             if progress:
-                jax.debug.callback(_Progress.tick, bounds(k)[1])
+                jax.debug.callback(_Progress.tick, _bounds(times, k)[1])
             return y1, dict(series=observe(y1, p, grid), steps=sol.stats["num_steps"].astype(jnp.int32),
                             code=_growth_code(sol).astype(jnp.int32))
 
@@ -286,13 +284,19 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     )
 
 
+def _bounds(times: tuple, k):
+    """(t0, t1) of interval k between the save times, from constants made where they are
+    used."""
+    return jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
+
+
 def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: SolverOptions, args, progress=False):
     """A static run as one growth solve per interval [times[k], times[k+1]], each from
     the last one's end state: the states at every save time, the steps, the status code
     of the first failed solve (0 if none) and the save time it started from."""
 
     def interval(y, k):
-        t0, t1 = jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
+        t0, t1 = _bounds(times, k)
         sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8)
         y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
         if progress:

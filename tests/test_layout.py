@@ -6,6 +6,8 @@ import ast
 import pathlib
 import re
 
+import pytest
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxtissue"
 
@@ -95,12 +97,8 @@ def test_the_workflows_load_on_first_use():
 
     assert jt.calibration.__name__ == "jaxtissue.studies.calibration" and sweep is jt.studies.sweep
     assert {"studies", "posterior"} <= set(dir(jt)) and "sweep_dask" in dir(jt.studies)
-    try:
+    with pytest.raises(AttributeError, match="no_such_workflow"):
         jt.no_such_workflow
-    except AttributeError as err:
-        assert "no_such_workflow" in str(err)
-    else:
-        raise AssertionError("an unknown attribute must raise AttributeError")
 
 
 def test_the_solvers_libraries_load_on_first_use():
@@ -119,12 +117,8 @@ def test_the_solvers_libraries_load_on_first_use():
     import jaxtissue.numerics as numerics
 
     assert {"ROS34PW2", "quantise", "Stacked"} <= set(dir(numerics))
-    try:
+    with pytest.raises(AttributeError, match="no_such_solver"):
         numerics.no_such_solver
-    except AttributeError as err:
-        assert "no_such_solver" in str(err)
-    else:
-        raise AssertionError("an unknown attribute must raise AttributeError")
 
 
 def _python_files():
