@@ -61,8 +61,8 @@ class SolverOptions(eqx.Module):
     static_series: str = eqx.field(static=True, default="dense")
     """How a static run saves its series: "dense", one growth solve saved at the save
     times by its dense output (fewest steps), or "intervals", one solve per coupling
-    interval, each ending at a save time (at least one step per interval, as a flex
-    run's): diffrax checks "dense"'s save times with a host callback, so only
+    interval, each ending at a save time and starting with the step the last one
+    ended with (at least one step per interval): diffrax checks "dense"'s save times with a host callback, so only
     "intervals" can be kept as a saved or cached program (the command line's choice;
     docs/numerics.md, "Compilation")."""
 
@@ -95,16 +95,17 @@ class SolverOptions(eqx.Module):
             return diffrax.ForwardMode()
         return diffrax.RecursiveCheckpointAdjoint(checkpoints=self.checkpoints or checkpoints)
 
-    def controller(self, span_s):
+    def controller(self, span_s, dt0_s=None):
         """diffrax step-size controller over an interval of `span_s` seconds, in the unit
-        time s = (t − t0) / span_s that `growth_solve` integrates in."""
+        time s = (t − t0) / span_s that `growth_solve` integrates in; its first step
+        `dt0_s` (may be traced; default `self.dt0_s`)."""
         import diffrax
 
         from .numerics import ReproducibleSteps
 
         if self.fixed_steps is None:
             pid = diffrax.PIDController(rtol=self.rtol, atol=self.atol, dtmax=self.dtmax_s / span_s)
-            return ReproducibleSteps(pid, dt0=self.dt0_s / span_s)
+            return ReproducibleSteps(pid, dt0=(self.dt0_s if dt0_s is None else dt0_s) / span_s)
         frac = jnp.geomspace(self.dt0_s / span_s, 1.0, self.fixed_steps)
         return diffrax.StepTo(ts=jnp.concatenate([jnp.zeros(1), frac]))
 
@@ -116,11 +117,13 @@ def _growth_code(sol):
     return jnp.where(sol.result == diffrax.RESULTS.successful, 0, jnp.where(sol.result == diffrax.RESULTS.max_steps_reached, 1, 4))
 
 
-def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptions, args, progress=False, checkpoints=16):
+def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptions, args, progress=False, checkpoints=16,
+                 dt0_s=None):
     """Integrate the growth system over [t0, t1] (diffrax, `ROS34PW2`); `sol.ys` is the
     state at `ts` (`ts=None`: at t1 only, no dense output). Observables are taken from
     the saved states afterwards (`result.observe`), outside the solver's loop and its
-    checkpointed reverse pass (`checkpoints`, unless `options` sets them).
+    checkpointed reverse pass (`checkpoints`, unless `options` sets them). `dt0_s`: the
+    first step (default `options.dt0_s`), e.g. `next_step_s` of the solve before.
 
     The solve runs in the unit time s = (t − t0)/(t1 − t0) (`numerics.Rescaled`; `sol.ts`
     is in s): diffrax's time bounds are then constants, also where t0 and t1 are traced.
@@ -131,7 +134,8 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     from .numerics import ROS34PW2
 
     span = t1 - t0
-    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=(ts - t0) / span)
+    steps_controlled = options.fixed_steps is None
+    saveat = diffrax.SaveAt(t1=ts is None, ts=None if ts is None else (ts - t0) / span, controller_state=steps_controlled)
     field = Stacked(model, jtu.tree_structure(y0))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(Rescaled(field, span)),
@@ -142,13 +146,24 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
         y0=stack(y0),
         args=args,
         saveat=saveat,
-        stepsize_controller=options.controller(span),
+        stepsize_controller=options.controller(span, dt0_s),
         max_steps=options.max_steps,
         adjoint=options.adjoint(checkpoints),
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
         throw=False,
     )
     return eqx.tree_at(lambda sol: sol.ys, sol, jax.vmap(field.unstack)(sol.ys))
+
+
+def next_step_s(sol, t0, t1, options: SolverOptions):
+    """The step (s) that `growth_solve`'s solve `sol` over [t0, t1] would have taken
+    next (`ReproducibleSteps.next_step`; `options.dt0_s` with `fixed_steps`), no
+    longer than `options.dtmax_s`."""
+    if options.fixed_steps is not None:
+        return jnp.asarray(options.dt0_s)
+    from .numerics import ReproducibleSteps
+
+    return jnp.minimum(jax.lax.stop_gradient(ReproducibleSteps.next_step(sol.controller_state) * (t1 - t0)), options.dtmax_s)
 
 
 class _Progress:
@@ -295,15 +310,19 @@ def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: S
     the last one's end state: the states at every save time, the steps, the status code
     of the first failed solve (0 if none) and the save time it started from."""
 
-    def interval(y, k):
+    def interval(carry, k):
+        y, dt0_s = carry
         t0, t1 = _bounds(times, k)
-        sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8)
+        sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8, dt0_s=dt0_s)
         y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
         if progress:
             jax.debug.callback(_Progress.tick, t1)
-        return y1, (y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32))
+        # the next interval goes on with the step this one ended with (no jump at a save time)
+        carry = (y1, next_step_s(sol, t0, t1, options))
+        return carry, (y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32))
 
-    _, (ends, steps, codes) = jax.lax.scan(jax.checkpoint(interval), y0, jnp.arange(len(times) - 1))
+    first_step = jnp.asarray(options.dt0_s, dtype=float)
+    _, (ends, steps, codes) = jax.lax.scan(jax.checkpoint(interval), (y0, first_step), jnp.arange(len(times) - 1))
     states = jtu.tree_map(lambda a, b: jnp.concatenate([a[None], b]), y0, ends)
     first = jnp.argmax(codes > 0)
     return states, jnp.sum(steps), codes[first], jnp.asarray(times)[first]

@@ -99,6 +99,19 @@ def test_saving_only_the_end_gives_the_same_final_values():
         jt.simulate(p, save="all")
 
 
+def test_a_static_series_by_intervals_goes_on_with_the_step_it_ended_with():
+    """`static_series="intervals"`: each interval's solve starts with the step the last
+    one would have taken next (no jump at a save time), so the 91 intervals take about
+    the dense run's steps (not ~6 each from `dt0_s` again), with the same series to the
+    tolerance."""
+    p, grid = jt.paper_parameters(), jt.Grid(1, 8)
+    dense, intervals = (jt.simulate(p, t_end_s=jt.THREE_WEEKS_S, grid=grid, options=jt.SolverOptions(static_series=s))
+                        for s in ("dense", "intervals"))
+    assert len(intervals.ts) == 92 and int(intervals.num_steps) < 1.6 * int(dense.num_steps), (intervals.num_steps, dense.num_steps)
+    for key in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa"):
+        np.testing.assert_allclose(getattr(intervals, key)[1:], getattr(dense, key)[1:], rtol=1e-4, err_msg=key)
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="t_end_s"):
         jt.simulate(jt.paper_parameters(), t_end_s=-1.0)

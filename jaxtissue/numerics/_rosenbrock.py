@@ -161,7 +161,12 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
 
     `dt0`: the first step, used when `diffeqsolve` is given `dt0=None` (diffeqsolve's
     own check of a given dt0 against traced t0, t1 is a host callback, which keeps a
-    program out of JAX's persistent compilation cache).
+    program out of JAX's persistent compilation cache); it may be traced.
+
+    Its state is the inner controller's and the step it would take next: `next_step`
+    of a solve's final state (`diffrax.SaveAt(controller_state=True)`) starts the next
+    solve of a series of solves where the last one ended (a step shortened to end on
+    t1 does not shrink it).
     """
 
     inner: diffrax.PIDController
@@ -184,11 +189,20 @@ class ReproducibleSteps(diffrax.AbstractAdaptiveStepSizeController):
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         dt0 = self.dt0 if dt0 is None else dt0
-        return self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
+        t_next, state = self.inner.init(terms, t0, t1, y0, dt0, args, func, error_order)
+        return t_next, (state, jax.lax.stop_gradient(t_next - t0))
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        inner_state, proposed = controller_state
         keep, next_t0, next_t1, made_jump, state, result = self.inner.adapt_step_size(
-            t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+            t0, t1, y0, y1_candidate, args, y_error, error_order, inner_state
         )
-        dt = jax.lax.stop_gradient(next_t1 - next_t0)
-        return keep, next_t0, next_t0 + quantise(dt), made_jump, state, result
+        dt = quantise(jax.lax.stop_gradient(next_t1 - next_t0))
+        # an accepted step shorter than proposed was cut to end on t1: keep the proposal
+        proposed = jnp.where(keep & (t1 - t0 < 0.999 * proposed), jnp.maximum(proposed, dt), dt)
+        return keep, next_t0, next_t0 + dt, made_jump, (state, proposed), result
+
+    @staticmethod
+    def next_step(controller_state):
+        """The step a solve that ended in `controller_state` would have taken next."""
+        return controller_state[1]
