@@ -107,7 +107,6 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         # (prevent_cse=False: the step runs inside loops, where CSE cannot merge the
         # recomputation away; the forward program stays as it was.)
         vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
-        f0 = vf(y0)
         # A W-method keeps its order for any J̃; the field holds J̃ constant under
         # differentiation, so the gradient differs from that of the discrete map only
         # at the level of the local error. (f0 is not taken from the linearisation the
@@ -117,16 +116,20 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
 
         a_t, c_t = jnp.asarray(_A_T), jnp.asarray(_C_T)
 
-        def stage(us, i):
+        def stage(carry, i):
             # stage i: (I/(γh) − J̃) u_i = f(y0 + Σ_j a_ij u_j) + Σ_j c_ij u_j / h, j < i
+            us, f0 = carry
             yi = jtu.tree_map(jnp.add, y0, _combine(a_t[i], us))
             memory = _combine(c_t[i], us)
-            ui = factor.solve(jtu.tree_map(lambda f, mm: f + mm / h, vf(yi), memory))
-            return jtu.tree_map(lambda x, u: x.at[i].set(u), us, ui), None
+            fi = vf(yi)
+            ui = factor.solve(jtu.tree_map(lambda f, mm: f + mm / h, fi, memory))
+            f0 = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), fi, f0)
+            return (jtu.tree_map(lambda x, u: x.at[i].set(u), us, ui), f0), None
 
-        # stage 0 (y_0 = y0, no memory terms) outside the loop: its f is f0
-        us0 = jtu.tree_map(lambda x, u: jnp.zeros((4,) + x.shape, x.dtype).at[0].set(u), y0, factor.solve(f0))
-        us, _ = jax.lax.scan(stage, us0, jnp.arange(1, 4))
+        # all four stages in one loop (stage 0: y_0 = y0, no memory terms, its f is f0):
+        # one copy of the stage in the program, forward and reverse
+        zeros = jtu.tree_map(jnp.zeros_like, y0)
+        (us, f0), _ = jax.lax.scan(stage, (jtu.tree_map(lambda x: jnp.zeros((4,) + x.shape, x.dtype), y0), zeros), jnp.arange(4))
         increment = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(_M_T), us))
         y1 = jtu.tree_map(jnp.add, y0, increment)
         y_error = jtu.tree_map(lambda a, b: jnp.where(active, a - b, 0.0), increment, _combine(jnp.asarray(_M_EMBEDDED_T), us))
