@@ -61,10 +61,10 @@ class SolverOptions(eqx.Module):
     static_series: str = eqx.field(static=True, default="dense")
     """How a static run saves its series: "dense", one growth solve saved at the save
     times by its dense output (fewest steps), or "intervals", one solve per coupling
-    interval, each ending at a save time and starting with the step the last one
-    ended with (at least one step per interval): diffrax checks "dense"'s save times with a host callback, so only
-    "intervals" can be kept as a saved or cached program (the command line's choice;
-    docs/numerics.md, "Compilation")."""
+    interval, each ending at a save time and starting with the step the last one ended
+    with (at least one step per interval): diffrax checks "dense"'s save times with a
+    host callback, so only "intervals" can be kept as a saved or cached program (the
+    command line's choice; docs/numerics.md, "Compilation")."""
 
     def __check_init__(self):
         for name in ("rtol", "atol", "dt0_s", "dtmax_s"):
