@@ -157,13 +157,14 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
 
 def next_step_s(sol, t0, t1, options: SolverOptions):
     """The step (s) that `growth_solve`'s solve `sol` over [t0, t1] would have taken
-    next (`ReproducibleSteps.next_step`; `options.dt0_s` with `fixed_steps`), no
-    longer than `options.dtmax_s`."""
+    next (`ReproducibleSteps.next_step`), no longer than `options.dtmax_s`;
+    `options.dt0_s` with `fixed_steps` or where the solve failed with no finite step."""
     if options.fixed_steps is not None:
         return jnp.asarray(options.dt0_s)
     from .numerics import ReproducibleSteps
 
-    return jnp.minimum(jax.lax.stop_gradient(ReproducibleSteps.next_step(sol.controller_state) * (t1 - t0)), options.dtmax_s)
+    dt = jax.lax.stop_gradient(ReproducibleSteps.next_step(sol.controller_state) * (t1 - t0))
+    return jnp.where(jnp.isfinite(dt) & (dt > 0), jnp.minimum(dt, options.dtmax_s), options.dt0_s)
 
 
 class _Progress:
