@@ -308,8 +308,9 @@ def _bounds(times: tuple, k):
 
 def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: SolverOptions, args, progress=False):
     """A static run as one growth solve per interval [times[k], times[k+1]], each from
-    the last one's end state: the states at every save time, the steps, the status code
-    of the first failed solve (0 if none) and the save time it started from."""
+    the last one's end state and with the step it would have taken next (`next_step_s`):
+    the states at every save time, the steps, the status code of the first failed solve
+    (0 if none) and the save time it started from."""
 
     def interval(carry, k):
         y, dt0_s = carry
@@ -318,9 +319,8 @@ def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: S
         y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
         if progress:
             jax.debug.callback(_Progress.tick, t1)
-        # the next interval goes on with the step this one ended with (no jump at a save time)
-        carry = (y1, next_step_s(sol, t0, t1, options))
-        return carry, (y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32))
+        out = (y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32))
+        return (y1, next_step_s(sol, t0, t1, options)), out  # no jump at a save time: the step goes on
 
     first_step = jnp.asarray(options.dt0_s, dtype=float)
     _, (ends, steps, codes) = jax.lax.scan(jax.checkpoint(interval), (y0, first_step), jnp.arange(len(times) - 1))
