@@ -134,8 +134,7 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     from .numerics import ROS34PW2
 
     span = t1 - t0
-    steps_controlled = options.fixed_steps is None
-    saveat = diffrax.SaveAt(t1=ts is None, ts=None if ts is None else (ts - t0) / span, controller_state=steps_controlled)
+    saveat = diffrax.SaveAt(t1=ts is None, ts=None if ts is None else (ts - t0) / span, controller_state=True)
     field = Stacked(model, jtu.tree_structure(y0))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(Rescaled(field, span)),
@@ -197,7 +196,7 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     sweeps = options.o2_sweeps or 0
     if protocol.regime == "static":
         model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport, o2_sweeps=sweeps)
-        one_solve = end_only or options.static_series == "dense"
+        one_solve = not _by_intervals(protocol.regime, options, end_only)
         if one_solve:
             sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
             states = sol.ys
@@ -228,12 +227,8 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
             p = theta[0]
             model = GrowthModel(coeffs=nondimensionalise(p), grid=grid, transport=transport, cell_transport=cell_transport,
                                 o2_sweeps=sweeps)
-            sol = growth_solve(model, y, *_bounds(times, k), None, options, (p, grid), checkpoints=8)  # the end state only
-            y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
-            if progress:
-                jax.debug.callback(_Progress.tick, _bounds(times, k)[1])
-            return y1, dict(series=observe(y1, p, grid), steps=sol.stats["num_steps"].astype(jnp.int32),
-                            code=_growth_code(sol).astype(jnp.int32))
+            y1, steps, code, _ = _interval_solve(model, y, None, times, k, options, (p, grid), progress)
+            return y1, dict(series=observe(y1, p, grid), steps=steps, code=code)
 
         def end(theta, y, k, transport):  # its series entry is dropped below (the run ends at the last save time)
             return y, dict(series=observe(y, theta[0], grid), steps=jnp.zeros((), jnp.int32), code=jnp.zeros((), jnp.int32))
@@ -300,10 +295,28 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     )
 
 
+def _by_intervals(regime: str, options: SolverOptions, end_only: bool) -> bool:
+    """Whether a run is solved one growth interval at a time (its progress counted in
+    intervals): a flex run, or a static series with `static_series="intervals"`."""
+    return regime == "flex" or (options.static_series == "intervals" and not end_only)
+
+
 def _bounds(times: tuple, k):
     """(t0, t1) of interval k between the save times, from constants made where they are
     used."""
     return jnp.asarray(times[:-1])[k], jnp.asarray(times[1:])[k]
+
+
+def _interval_solve(model: GrowthModel, y: State, dt0_s, times: tuple, k, options: SolverOptions, args, progress):
+    """Interval k's growth solve, from y over [times[k], times[k+1]] with the first step
+    `dt0_s` (None: `options.dt0_s`), its end state only, and the interval bar's tick:
+    the end state, the steps, the status code and the step it would have taken next."""
+    t0, t1 = _bounds(times, k)
+    sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8, dt0_s=dt0_s)
+    if progress:
+        jax.debug.callback(_Progress.tick, t1)
+    y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
+    return y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32), next_step_s(sol, t0, t1, options)
 
 
 def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: SolverOptions, args, progress=False):
@@ -313,14 +326,8 @@ def _static_by_intervals(model: GrowthModel, y0: State, times: tuple, options: S
     (0 if none) and the save time it started from."""
 
     def interval(carry, k):
-        y, dt0_s = carry
-        t0, t1 = _bounds(times, k)
-        sol = growth_solve(model, y, t0, t1, None, options, args, checkpoints=8, dt0_s=dt0_s)
-        y1 = jtu.tree_map(lambda x: x[-1], sol.ys)
-        if progress:
-            jax.debug.callback(_Progress.tick, t1)
-        out = (y1, sol.stats["num_steps"].astype(jnp.int32), _growth_code(sol).astype(jnp.int32))
-        return (y1, next_step_s(sol, t0, t1, options)), out  # no jump at a save time: the step goes on
+        y1, steps, code, next_step = _interval_solve(model, *carry, times, k, options, args, progress)
+        return (y1, next_step), (y1, steps, code)  # no jump at a save time: the step goes on
 
     first_step = jnp.asarray(options.dt0_s, dtype=float)
     _, (ends, steps, codes) = jax.lax.scan(jax.checkpoint(interval), (y0, first_step), jnp.arange(len(times) - 1))
@@ -424,7 +431,7 @@ def simulate(
     if options.o2_sweeps is None:
         options = dataclasses.replace(options, o2_sweeps=default_o2_sweeps(grid, params))
     params, protocol = jtu.tree_map(_float_array, (params, protocol))
-    if progress and (protocol.regime == "flex" or options.static_series == "intervals" and save == "intervals"):
+    if progress and _by_intervals(protocol.regime, options, save == "end"):
         from tqdm.auto import tqdm
 
         _Progress.bar = tqdm(total=len(times) - 1, unit="interval", desc=f"{protocol.regime} culture")  # the save times are the interval bounds
