@@ -151,7 +151,7 @@ def enable_compilation_cache(folder: str | os.PathLike | None = None) -> pathlib
 MAX_EXECUTABLES = 64
 """Saved executables kept in their folder; least recently used go first."""
 
-_FORMAT = 2
+_FORMAT = 3
 _SUFFIX = ".jtx"
 _folder: pathlib.Path | None = None
 _loaded: dict = {}  # key -> _Entry, this process's programs
@@ -213,8 +213,8 @@ class _Entry:
     """A compiled program taking and giving flat lists of arrays, and `skeleton`: its
     result with `_Out` where the arrays go (what `_save` pickles)."""
 
-    def __init__(self, compiled, skeleton, callbacks: bool = False):
-        self.compiled, self.skeleton, self.callbacks = compiled, skeleton, callbacks
+    def __init__(self, compiled, skeleton, callbacks: bool = False, lapack: bool = False):
+        self.compiled, self.skeleton, self.callbacks, self.lapack = compiled, skeleton, callbacks, lapack
         self.parts, self.structure = _flatten(skeleton)
 
     def __call__(self, leaves):
@@ -255,12 +255,25 @@ def _compile(fn, treedef, static, leaves, key: str) -> _Entry:
         import secrets
 
         lowered, compiled, _ = compiled_as(f"{name}_{secrets.token_hex(4)}")
-    return _Entry(compiled, box["skeleton"], _HOST_CALLBACK.search(lowered.as_text()) is not None)
+    text = lowered.as_text()
+    return _Entry(compiled, box["skeleton"], _HOST_CALLBACK.search(text) is not None, _LAPACK.search(text) is not None)
 
 
 _HOST_CALLBACK = re.compile(r"custom_call @\w*python\w*callback")
 """How a host callback (`jax.debug.callback`, `jax.pure_callback`) appears in a lowered
 program: a call into this Python process, which a saved program cannot make."""
+
+_LAPACK = re.compile(r"custom_call @lapack_")
+"""How a call into jaxlib's LAPACK kernels appears in a lowered program (e.g. the
+least-squares solve of `numerics.LevenbergMarquardt`)."""
+
+
+@functools.cache
+def _ready_lapack() -> None:
+    """Make jaxlib's LAPACK kernels callable: JAX does so when it lowers a program that
+    calls them, and a loaded program is never lowered (it would crash in its first
+    LAPACK call). One small program lowered, never compiled."""
+    jax.jit(jnp.linalg.cholesky).lower(jax.ShapeDtypeStruct((1, 1), jnp.float64))
 
 
 _hits = threading.local()
@@ -295,7 +308,7 @@ def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
     try:
         blob, _, _ = serialize(entry.compiled)
         devices = sorted({d.id for s in jtu.tree_leaves(entry.compiled.input_shardings) for d in s.device_set})
-        data = pickle.dumps((_FORMAT, blob, n_in, devices, entry.skeleton))
+        data = pickle.dumps((_FORMAT, blob, n_in, devices, entry.skeleton, entry.lapack))
         folder.mkdir(parents=True, exist_ok=True)
         atomic_write(folder / f"{key}{_SUFFIX}", lambda f: f.write(data))
         _prune(folder)
@@ -328,27 +341,36 @@ def _load(path: pathlib.Path) -> _Entry | None:
     except OSError:
         return None
     try:
-        version, blob, n_in, device_ids, skeleton = pickle.loads(data)
-        if version != _FORMAT:
+        saved = pickle.loads(data)
+        if saved[0] != _FORMAT:  # another format: compiled afresh
             return None
+        _, blob, n_in, device_ids, skeleton, lapack = saved
+        if lapack:
+            _ready_lapack()
         n_out = _flatten(skeleton)[0].count(_OUT)
         devices = {d.id: d for d in jax.devices()}
         compiled = deserialize_and_load(blob, jtu.tree_structure((tuple(range(n_in)), {})), jtu.tree_structure(list(range(n_out))),
                                         execution_devices=[devices[i] for i in device_ids])
         os.utime(path)  # recently used
-        return _Entry(compiled, skeleton)
+        return _Entry(compiled, skeleton, lapack=lapack)
     except Exception as err:
         warnings.warn(f"saved program {path} is unreadable ({type(err).__name__}); compiling it again", RuntimeWarning, stacklevel=3)
         return None
 
 
+_UNDESCRIBED = re.compile(r" at 0x[0-9a-f]+|\b(?:weak_)?(?:bool|bf16|[fiuc]\d+)\[|\b(?:array|Array)\(")
+"""Where a static argument's repr does not say what it holds: an address (a function,
+say: its program would never be found again), or an array inside it (equinox prints
+`f64[3]`, NumPy rounds and elides), whose values a program may hold as constants."""
+
+
 def _key(fn, treedef, static, leaves) -> str | None:
-    """A hex digest of `_description`, or None where a static argument is described only
-    by its address (a function, say: its program would never be found again)."""
+    """A hex digest of `_description`, or None where a static argument is not fully
+    described by its repr (`_UNDESCRIBED`)."""
     import hashlib
 
     text = _description(fn, treedef, static, leaves)
-    return None if re.search(r" at 0x[0-9a-f]+", text) else hashlib.sha256(text.encode()).hexdigest()[:40]
+    return None if _UNDESCRIBED.search(text) else hashlib.sha256(text.encode()).hexdigest()[:40]
 
 
 def _description(fn, treedef, static, leaves) -> str:

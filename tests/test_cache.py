@@ -128,11 +128,21 @@ def _saved(folder):
     return sorted(folder.glob("*.jtx"))
 
 
+class _Holder:
+    """A static argument holding an array: its repr cannot name every value."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def __repr__(self):
+        return f"_Holder({self.values!r})"
+
+
 def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, monkeypatch):
     """`cache.call`: the first call compiles and saves; a later process (here: the
     in-memory programs forgotten, compiling forbidden) loads the file; other static
     values or shapes are other programs; traced arguments, host callbacks and static
-    arguments known only by their address are not saved."""
+    arguments known only by their address or holding arrays are not saved."""
     monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)  # the suite's setting (tests/conftest.py)
     x = jnp.arange(3.0)
     plain = _affine(x, 2.0, "a")
@@ -152,6 +162,8 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
         np.testing.assert_array_equal(jax.jit(lambda v: cache.call(_affine, v, 2.0, "a")["y"])(x), plain["y"])  # traced: plain
         np.testing.assert_array_equal(cache.call(_noisy, x), x + 1.0)  # its callback lives in this process only
         assert callable(cache.call(_affine, x, 2.0, lambda: None)["label"])  # described by its address: never found again
+        for held in (np.arange(2000.0), np.asarray([0.1234567891]), jt.paper_parameters().replace(k_m0=jnp.asarray(1e-7))):
+            cache.call(_affine, x, 2.0, _Holder(held))  # its repr elides, rounds or hides the values
         assert len(_saved(tmp_path)) == 3
     monkeypatch.setattr(cache, "MAX_EXECUTABLES", 3)
     with saved_executables(tmp_path):  # the least recently used go first
@@ -201,20 +213,27 @@ def split(x, n):
 def single(x):
     return jnp.cos(x)
 
+@eqx.filter_jit
+def least_squares(a, b):  # a LAPACK call (gesdd), whose kernels JAX readies only when it lowers one
+    return jnp.linalg.lstsq(a, b)[0]
+
 x = np.arange(8.0)
+a_ls = np.vander(np.linspace(0.0, 1.0, 8), 3)
 with cache.saved_executables(sys.argv[1]):
-    a, b = cache.call(split, x, 8), cache.call(single, x)
+    a, b, c = cache.call(split, x, 8), cache.call(single, x), cache.call(least_squares, a_ls, x)
 np.testing.assert_allclose(np.asarray(a), np.sin(x) * 2.0, rtol=1e-15)
 np.testing.assert_allclose(np.asarray(b), np.cos(x), rtol=1e-15)
+np.testing.assert_allclose(np.asarray(c), np.linalg.lstsq(a_ls, x, rcond=None)[0], rtol=1e-12, atol=1e-12)
 print(len(jax.devices()), len(list(__import__("pathlib").Path(sys.argv[1]).glob("*.jtx"))))
 """
 
 
 def test_saved_programs_over_two_devices_load_in_a_new_process(tmp_path):
-    """A program split over the devices and one on a single device, saved by one
-    process with two CPU devices; their files lost, saved again by a process that finds
-    them in JAX's cache (compiled afresh: JAX's copy serialises without its kernels);
-    loaded by the next."""
+    """A program split over the devices, one on a single device and one calling LAPACK,
+    saved by one process with two CPU devices; their files lost, saved again by a
+    process that finds them in JAX's cache (compiled afresh: JAX's copy serialises
+    without its kernels); loaded by the next (LAPACK readied first: its first call
+    would crash the process)."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTISSUE_NO_SAVED_PROGRAMS") and not k.startswith("JAX_")}
     env |= {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax"),
             "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
@@ -226,4 +245,4 @@ def test_saved_programs_over_two_devices_load_in_a_new_process(tmp_path):
         out = subprocess.run([sys.executable, "-c", _OVER_TWO_DEVICES, str(saved)], env=env, capture_output=True, text=True,
                              timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
-        assert out.stdout.split() == ["2", "2"]
+        assert out.stdout.split() == ["2", "3"]

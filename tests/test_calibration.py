@@ -4,11 +4,13 @@ import dataclasses
 import json
 import pathlib
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxtissue as jt
+from jaxtissue import cache
 from jaxtissue import calibration as cal
 from jaxtissue.cli import main
 from jaxtissue.data import ENGELMAYR, DataError, read_measurements
@@ -230,6 +232,48 @@ def test_calibrate_command_recovers_and_writes_its_files(tmp_path, capsys):
     assert len(summary["starts"]["chi2"]) == 2 and min(summary["starts"]["chi2"]) == pytest.approx(summary["chi2"])
     assert main(["calibrate", str(tmp_path / "problem.toml"), "--out", str(out)]) == 2  # never overwrites
     assert "folder exists and is not empty" in capsys.readouterr().err
+
+
+@eqx.filter_jit
+def _scaled(problem, x):
+    return x * len(problem.observations)
+
+
+def test_a_problem_read_from_its_file_names_its_saved_programs(tmp_path, monkeypatch):
+    """The fit's programs take the problem as a static argument (`cache.call`): one read
+    from its file is named by its repr, so that a second `calibrate` loads them; one
+    whose parameters hold arrays is compiled afresh (the cheap version of the next test)."""
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    problem = cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml")
+    x = jnp.arange(3.0)
+    with cache.saved_executables(tmp_path):
+        cache.call(_scaled, problem, x)
+        assert len(list(tmp_path.glob("*.jtx"))) == 1
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+            again = cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml")  # as a new process reads it
+            np.testing.assert_array_equal(cache.call(_scaled, again, x), x * len(again.observations))
+        held = dataclasses.replace(problem, base=problem.base.replace(k_a=jnp.asarray(1e-5)))
+        cache.call(_scaled, held, x)
+        assert len(list(tmp_path.glob("*.jtx"))) == 1
+
+
+@pytest.mark.slow  # compiles the fit's programs; the test above is its cheap version
+def test_a_second_calibration_loads_its_programs(tmp_path, monkeypatch):
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    problem, _ = synthetic(tmp_path, ["k_m0", "E_m0_kPa_per_ug_g"], regimes=("static",))
+    # seen at 3 weeks only: its static run keeps its end state, with no host callback
+    problem = dataclasses.replace(problem, observations=tuple(o for o in problem.observations if o.time_s == 3 * WEEK))
+    with cache.saved_executables(tmp_path / "programs"):
+        first = cal.calibrate(problem, with_profiles=False)
+        assert len(list((tmp_path / "programs").glob("*.jtx"))) == 2  # the fit's solve and the residuals
+        monkeypatch.setattr(cache, "_loaded", {})  # as in a new process: neither traced nor compiled again
+        for where, name in ((cal, "lm_solve"), (cal.Problem, "model_values"), (cache, "_compile")):
+            monkeypatch.setattr(where, name, lambda *a, name=name: pytest.fail(f"{name} again"))
+        second = cal.calibrate(dataclasses.replace(problem), with_profiles=False)
+    np.testing.assert_array_equal(second.fit.ends_t, first.fit.ends_t)
+    np.testing.assert_array_equal(second.model, first.model)
 
 
 def test_calibrate_command_bad_file_exits_2(tmp_path, capsys):

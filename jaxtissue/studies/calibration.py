@@ -27,12 +27,13 @@ import math
 import pathlib
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .. import io, plots
+from .. import cache, io, plots
 from ..data import DataError, Observation, read_measurements
 from ..io import InputError, params_from_table, read_toml
 from ..limits import check_study
@@ -243,22 +244,40 @@ class FitResult(NamedTuple):
     jacobian: np.ndarray  # ∂r/∂t at the best end (exact: the solve's own where it converged)
 
 
-@functools.lru_cache(maxsize=8)
+@eqx.filter_jit
+def _residuals_program(problem: Problem, t):
+    return problem.residuals(t)
+
+
+@eqx.filter_jit
+def _jacobian_program(problem: Problem, t):
+    return jax.jacfwd(problem.residuals)(t)
+
+
 def _compiled(problem: Problem, jacobian: bool):
-    """The problem's jitted residuals or their forward-mode Jacobian (cached)."""
-    return jax.jit(jax.jacfwd(problem.residuals) if jacobian else problem.residuals)
+    """`f(t)`: the problem's compiled residuals or their forward-mode Jacobian (as
+    `lm_solver`'s, compiled once per problem and saved where the command line saves its
+    programs)."""
+    return functools.partial(cache.call, _jacobian_program if jacobian else _residuals_program, problem)
 
 
-@functools.lru_cache(maxsize=8)
-def lm_solver(problem: Problem, batch: int):
-    """The problem's compiled LM solve (`lm_solve`) for `batch` starts at a time (cached: the
-    fit and the profiles' points share it, and repeated fits do not recompile). One start
-    at a time is not vmapped: under `vmap` the solve's Jacobian refresh would run every step."""
+@eqx.filter_jit
+def _lm_program(problem: Problem, batch: int, t0, args):
     s = problem.fit
     solve = lm_solve(problem, max(s.max_steps, s.profile_max_steps))
-    if batch == 1:
-        return jax.jit(lambda t0, args: jax.tree_util.tree_map(lambda x: x[None], solve(t0[0], args)))
-    return jax.jit(jax.vmap(solve, in_axes=(0, None)))
+    if batch == 1:  # not vmapped: under `vmap` the solve's Jacobian refresh would run every step
+        return jax.tree_util.tree_map(lambda x: x[None], solve(t0[0], args))
+    return jax.vmap(solve, in_axes=(0, None))(t0, args)
+
+
+def lm_solver(problem: Problem, batch: int):
+    """`solve(t0, args)`: the problem's compiled LM solve (`lm_solve`) of `batch` starts
+    t0 at a time. Compiled once per problem (the fit and the profiles' points share it)
+    and, where `cache.saved_executables` is on (the command line), saved: a second
+    `jaxtissue calibrate` of the same problem loads it instead of tracing it again, as
+    a repr names the problem completely (a `Problem` holding arrays is compiled afresh
+    in every process)."""
+    return functools.partial(cache.call, _lm_program, problem, batch)
 
 
 def pinned(i: int, t_i: float, max_steps: int, also: tuple[int, float] = (-1, 0.0)):
