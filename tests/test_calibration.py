@@ -120,8 +120,9 @@ def test_observation_between_save_times_is_refused(tmp_path):
 def test_a_static_condition_seen_once_keeps_only_its_end_state(tmp_path):
     """A static condition observed at one time after seeding (as in the Engelmayr data)
     runs with its end state only: the same model values and Jacobian as from its
-    series, to round-off; seeded values from the seeded state; NaN where its solve
-    fails; and a program with no host callback, which the compilation cache keeps."""
+    series (solved interval by interval), to the tolerance; seeded values from the
+    seeded state; NaN where its solve fails; and, as for the series, a program with no
+    host callback, which the compilation cache keeps."""
     import jax
 
     rows = "".join(f"{q},{r},{t},{v},5,{u},\n" for q, u, v in (("dna_ug_per_g", "ug/g", 500), ("E_eff_kPa", "kPa", 10))
@@ -132,9 +133,11 @@ def test_a_static_condition_seen_once_keeps_only_its_end_state(tmp_path):
     twice = cal.read_problem(problem_toml(tmp_path, "twice.csv", ["k_a", "k_m0"], regimes=("static",)))  # a series
     t = once.t_from_values([1.0e-5, 2.0e-7])
     assert len(once.simulate(once.params(t))["static"].ts) == 1 and len(twice.simulate(twice.params(t))["static"].ts) > 1
-    np.testing.assert_allclose(once.model_values(t), twice.model_values(t)[:4], rtol=1e-12)
-    np.testing.assert_allclose(jax.jacfwd(once.model_values)(t), jax.jacfwd(twice.model_values)(t)[:4], rtol=1e-10, atol=1e-14)
-    assert "callback" not in jax.jit(once.residuals).lower(t).as_text()
+    np.testing.assert_allclose(once.model_values(t), twice.model_values(t)[:4], rtol=once.model.rtol)
+    j_once, j_twice = np.asarray(jax.jacfwd(once.model_values)(t)), np.asarray(jax.jacfwd(twice.model_values)(t)[:4])
+    assert np.max(np.abs(j_once - j_twice)) < 1e-6 * np.max(np.abs(j_once))
+    for problem in (once, twice):
+        assert "callback" not in jax.jit(problem.residuals).lower(t).as_text()
 
     class FewSteps(type(once.model)):
         def options(self):

@@ -54,8 +54,9 @@ class ModelSettings:
         return self.solver_options("forward")
 
     def solver_options(self, autodiff: str) -> SolverOptions:
+        """A static series interval by interval: programs the compilation cache keeps."""
         return SolverOptions(rtol=self.rtol, atol=self.atol, autodiff=autodiff, nest_intervals=self.nest_intervals,
-                             store_float32=self.store_float32)
+                             store_float32=self.store_float32, static_series="intervals")
 
 
 def table(doc, key, where, allowed=None):

@@ -148,8 +148,9 @@ class Problem:
     def simulate(self, params: Params) -> dict:
         """`{condition: Result}` up to each condition's last observation. A static
         condition observed at one time after seeding keeps only its end state there
-        (`save="end"`): a series is checked by diffrax with a host callback, and programs
-        with one are never cached (docs/numerics.md, "Compilation")."""
+        (`save="end"`: one solve); a static series is solved interval by interval (the
+        model's `SolverOptions`), with no host callback: the programs are cached and
+        saved (docs/numerics.md, "Compilation")."""
         m = self.model
         return {
             name: simulate(params, self.conditions[name], t_end, m.grid(self.conditions[name].regime),

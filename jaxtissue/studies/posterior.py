@@ -1208,8 +1208,8 @@ def predict(saved: Saved, protocol, t_end_s: float, draws: int = 100, seed: int 
 
     size = even_batches(len(chosen), batch)
     run = functools.partial(cache.call, _predict_batch, saved.base, tuple(saved.names), protocol, t_end_s, grid,
-                            m.coupling_interval_s, m.beam(), dataclasses.replace(m.options(), static_series="intervals"), size)
-    parts = _in_batches(run, chosen, size, progress)  # (a static series interval by interval: a program the cache keeps)
+                            m.coupling_interval_s, m.beam(), m.options(), size)
+    parts = _in_batches(run, chosen, size, progress)
     times = save_times(t_end_s, m.coupling_interval_s)
     failed = np.concatenate([p[1] for p in parts])
     data = {}
