@@ -1,6 +1,7 @@
 """Two identical cold command-line runs in fresh processes, sharing a new, empty
 compilation cache folder (`jaxtissue.cache`): the second loads its programs from disk.
-Prints each run's wall time and the second's share of the first.
+Prints each run's wall time and the second's share of the first. The optimisation is
+cut short (2 starts of 3 steps, a 4 × 4 grid): its compilation is the same.
 
     python benchmarks/cache.py [--simulate-only]
 """
@@ -18,6 +19,8 @@ COMMANDS = {
     "simulate --regime flex": ["simulate", "--regime", "flex", "--no-progress"],
     "reproduce": ["reproduce", "--no-progress"],
     "calibrate (no profiles)": ["calibrate", os.path.join(ROOT, "calibrate", "engelmayr2005.toml"), "--no-profiles", "--no-progress"],
+    "optimize (short)": ["optimize", os.path.join(ROOT, "optimize", "max_collagen.toml"), "--starts", "2", "--steps", "3",
+                         "--grid-points", "4", "--no-progress"],
 }
 
 

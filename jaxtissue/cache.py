@@ -188,16 +188,37 @@ def call(jitted, *args):
     dtypes of its arrays, jaxtissue's source and the versions, flags and devices that
     compile it. A program that cannot be saved (one with host callbacks: a progress bar)
     runs from memory; an unreadable file costs a warning and a compilation."""
+    found = _program(jitted, args)
+    if found is None:
+        return jitted(*args)
+    entry, leaves = found
+    return entry(leaves)
+
+
+def prepared(jitted, *args):
+    """`jitted`'s program for arguments like `args` (the same static values, array
+    shapes and dtypes), loaded or compiled now (as `call` would) and returned as a
+    function of such arguments: compilation timed apart from the runs."""
+    found = _program(jitted, args)
+    if found is None:
+        return jitted.lower(*args).compile()
+    entry, _ = found
+    return lambda *a: entry(jtu.tree_leaves(eqx.filter(a, eqx.is_array)))
+
+
+def _program(jitted, args):
+    """(`_Entry`, the arrays of `args`) of `call`'s saved or newly compiled program, or
+    None where none is saved (off, traced arguments, no key)."""
     folder, fn = _folder, getattr(jitted, "__wrapped__", None)
     if folder is None or fn is None:  # off, or not a jitted function
-        return jitted(*args)
+        return None
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jtu.tree_flatten(dynamic)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return jitted(*args)
+        return None
     key = _key(fn, treedef, static, leaves)
     if key is None:  # a static argument without a stable description (e.g. a function)
-        return jitted(*args)
+        return None
     entry = _loaded.get(key) or _load(folder / f"{key}{_SUFFIX}")
     if entry is None:
         entry = _compile(fn, treedef, static, leaves, key)
@@ -206,7 +227,7 @@ def call(jitted, *args):
     _loaded[key] = entry  # the most recent last; a few kept
     while len(_loaded) > 8:
         del _loaded[next(iter(_loaded))]
-    return entry(leaves)
+    return entry, leaves
 
 
 class _Entry:
@@ -314,7 +335,7 @@ def _save(folder: pathlib.Path, key: str, entry: _Entry, n_in: int) -> None:
         _prune(folder)
     except Exception as err:  # a cache that cannot be written costs a warning, never the run
         warnings.warn(f"could not save a compiled program in {folder} ({type(err).__name__}: {err}); "
-                      "the next run compiles it again", RuntimeWarning, stacklevel=3)
+                      "the next run compiles it again", RuntimeWarning, stacklevel=4)
 
 
 def _prune(folder: pathlib.Path) -> None:
@@ -354,7 +375,7 @@ def _load(path: pathlib.Path) -> _Entry | None:
         os.utime(path)  # recently used
         return _Entry(compiled, skeleton, lapack=lapack)
     except Exception as err:
-        warnings.warn(f"saved program {path} is unreadable ({type(err).__name__}); compiling it again", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"saved program {path} is unreadable ({type(err).__name__}); compiling it again", RuntimeWarning, stacklevel=4)
         return None
 
 

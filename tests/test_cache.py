@@ -165,6 +165,15 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
         for held in (np.arange(2000.0), np.asarray([0.1234567891]), jt.paper_parameters().replace(k_m0=jnp.asarray(1e-7))):
             cache.call(_affine, x, 2.0, _Holder(held))  # its repr elides, rounds or hides the values
         assert len(_saved(tmp_path)) == 3
+    with saved_executables(tmp_path):  # `prepared`: the program loaded now, run later
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+            run = cache.prepared(_affine, x, 2.0, "a")
+        np.testing.assert_array_equal(run(x + 1.0, 2.0, "a")["y"], (x + 1.0) * 2.0 + 1.0)
+    run = cache.prepared(_affine, x, 9.0, "a")  # off: compiled now, by equinox
+    np.testing.assert_array_equal(run(x, 9.0, "a")["y"], x * 9.0 + 1.0)
+    assert len(_saved(tmp_path)) == 3
     monkeypatch.setattr(cache, "MAX_EXECUTABLES", 3)
     with saved_executables(tmp_path):  # the least recently used go first
         cache.call(_affine, x, 2.0, "a")  # loaded from memory: its file keeps its age

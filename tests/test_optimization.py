@@ -1,16 +1,19 @@
 """Protocol optimisation: schedules, objectives, the augmented Lagrangian's gradient,
 the optimum against a brute-force grid, problem files and the CLI."""
 
+import dataclasses
 import json
 import pathlib
 import types
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxtissue as jt
+from jaxtissue import cache
 from jaxtissue import optimization as opt
 from jaxtissue.studies import objectives
 from jaxtissue.studies.calibration import ModelSettings
@@ -212,6 +215,43 @@ def test_shipped_problem_files_are_valid():
     assert {"max_collagen", "max_collagen_schedule", "least_conditioning"} <= names
     objectives = {opt.read_design(ROOT / "optimize" / f"{n}.toml").objective for n in names}
     assert objectives == set(opt.OBJECTIVES)
+
+
+@eqx.filter_jit
+def _stages_times(design, x):
+    return x * design.stages
+
+
+def test_a_design_read_from_its_file_names_its_saved_programs(tmp_path, monkeypatch):
+    """The optimisation's programs take the design as a static argument (`cache.prepared`):
+    one read from its file is named by its repr, so that a second `jaxtissue optimize`
+    loads them (the cheap version of the next test)."""
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    path = ROOT / "optimize" / "max_collagen_schedule.toml"
+    x = jnp.arange(3.0)
+    with cache.saved_executables(tmp_path):
+        cache.call(_stages_times, opt.read_design(path), x)
+        assert len(list(tmp_path.glob("*.jtx"))) == 1
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+            again = opt.read_design(path)  # as a new process reads it
+            np.testing.assert_array_equal(cache.prepared(_stages_times, again, x)(again, x + 1.0), (x + 1.0) * again.stages)
+
+
+@pytest.mark.slow  # compiles the optimisation's programs; the test above is its cheap version
+def test_a_second_optimisation_loads_its_programs(tmp_path, monkeypatch):
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    design = opt.read_design(write_problem(tmp_path, PROBLEM.replace("steps = 16", "steps = 3").replace("grid_points = 5", "grid_points = 2")))
+    with cache.saved_executables(tmp_path / "programs"):
+        first = opt.run(design)
+        assert len(list((tmp_path / "programs").glob("*.jtx"))) == 3  # the baseline, the grid's batch, the Adam step
+        monkeypatch.setattr(cache, "_loaded", {})  # as in a new process: neither traced nor compiled again
+        for where, name in ((opt.Design, "evaluate_with"), (cache, "_compile")):
+            monkeypatch.setattr(where, name, lambda *a, name=name: pytest.fail(f"{name} again"))
+        second = opt.run(dataclasses.replace(design))
+    np.testing.assert_array_equal(second.optimum.path, first.optimum.path)
+    np.testing.assert_array_equal(second.grid.objective, first.grid.objective)
 
 
 @pytest.mark.slow  # compiles the grid search; the limits' messages: test_bad_problem_files_...

@@ -29,12 +29,13 @@ import pathlib
 import time
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import io, plots
+from .. import cache, io, plots
 from ..io import InputError, number, params_from_table, read_params_toml, read_toml
 from ..limits import SUPPORTED, check_study
 from ..params import Params, suggest
@@ -238,10 +239,44 @@ class GridResult(NamedTuple):
     compile_seconds: float
 
 
-def _compile(fn, *args):
+def _prepared(jitted, *args):
+    """`jitted`'s program for `args`, compiled (or, where the command line saves its
+    programs, loaded: `cache.prepared`), and the seconds that took."""
     t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    return compiled, time.perf_counter() - t0
+    run = cache.prepared(jitted, *args)
+    return run, time.perf_counter() - t0
+
+
+@eqx.filter_jit
+def _evaluate(design: Design, theta):
+    return design.evaluate(theta)
+
+
+@eqx.filter_jit
+def _grid_batch(design: Design, thetas):
+    """`design.evaluate` of the protocols θ (rows of `thetas`) at once, over the devices."""
+    return vmap_over_devices(design.evaluate, thetas.shape[0])(thetas)
+
+
+def _adam(settings: OptimizerSettings):
+    schedule = optax.cosine_decay_schedule(settings.learning_rate, settings.steps, alpha=0.1)
+    return optax.apply_if_finite(optax.adam(schedule), max_consecutive_errors=settings.steps)
+
+
+@eqx.filter_jit
+def _adam_steps(design: Design, z, state, lam, scale):
+    """An Adam step on the augmented Lagrangian from each start (rows of z, their Adam
+    states and multipliers) at once, over the devices: (z, state, (θ, objective,
+    constraint values, failed) at the z stepped from)."""
+    opt = _adam(design.settings)
+    grad = (jax.jacfwd if design.autodiff == "forward" else jax.grad)(design.lagrangian, has_aux=True)
+
+    def step(z, state, lam, scale):
+        dz, aux = grad(z, lam, scale)
+        updates, state = opt.update(dz, state, z)
+        return optax.apply_updates(z, updates), state, aux
+
+    return vmap_over_devices(step, z.shape[0], (0, 0, 0, None))(z, state, lam, scale)
 
 
 def grid_search(design: Design, progress=None) -> GridResult:
@@ -256,13 +291,13 @@ def grid_search(design: Design, progress=None) -> GridResult:
     thetas = np.stack([np.broadcast_to(P.ravel()[:, None], (n * n, design.stages)),
                        np.broadcast_to(U.ravel()[:, None], (n * n, design.stages))], axis=-1)
     chunk = min(s.grid_chunk, n * n)
-    batch, compile_s = _compile(vmap_over_devices(design.evaluate, chunk), jnp.zeros((chunk, design.stages, 2)))
+    batch, compile_s = _prepared(_grid_batch, design, jnp.zeros((chunk, design.stages, 2)))
     t0 = time.perf_counter()
     J, V, F = [], [], []
     for b in range(0, n * n, chunk):
         part = thetas[b : b + chunk]
         pad = chunk - len(part)
-        out = batch(jnp.asarray(np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])))
+        out = batch(design, jnp.asarray(np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])))
         J.append(np.asarray(out[0])[: len(part)])
         V.append(np.asarray(out[1])[: len(part)])
         F.append(np.asarray(out[2])[: len(part)])
@@ -310,27 +345,16 @@ def optimize(design: Design, starts: np.ndarray, scale: float, progress=None) ->
     """Adam on the augmented Lagrangian from every start at once; `scale` normalises
     the objective (e.g. the baseline's |objective|)."""
     s = design.settings
-    schedule = optax.cosine_decay_schedule(s.learning_rate, s.steps, alpha=0.1)
-    opt = optax.apply_if_finite(optax.adam(schedule), max_consecutive_errors=s.steps)
-    if design.autodiff == "forward":
-        grad = jax.jacfwd(design.lagrangian, has_aux=True)
-    else:
-        grad = jax.grad(design.lagrangian, has_aux=True)
-
-    def step(z, state, lam):
-        dz, aux = grad(z, lam, scale)
-        updates, state = opt.update(dz, state, z)
-        return optax.apply_updates(z, updates), state, aux
-
     n_con = len(design.constraints)
     z = jnp.asarray(design.z_from_theta(jnp.asarray(starts)))
-    state = jax.vmap(opt.init)(z)
+    state = jax.vmap(_adam(s).init)(z)
     lam = jnp.zeros((len(starts), n_con))
-    batched, compile_s = _compile(vmap_over_devices(step, len(starts)), z, state, lam)
+    scale = jnp.asarray(scale, float)
+    batched, compile_s = _prepared(_adam_steps, design, z, state, lam, scale)
     path, J, V, F, stamps = [], [], [], [], []
     t0 = time.perf_counter()
     for k in range(s.steps + 1):
-        z_new, state_new, (theta, j, values, failed) = batched(z, state, lam)
+        z_new, state_new, (theta, j, values, failed) = batched(design, z, state, lam, scale)
         path.append(np.asarray(theta)), J.append(np.asarray(j)), V.append(np.asarray(values)), F.append(np.asarray(failed))
         stamps.append(time.perf_counter() - t0)
         z, state = z_new, state_new
@@ -387,7 +411,7 @@ def run(design: Design, progress: bool = False) -> Study:
     draws = 1 if design.uncertainty is None else max(design.uncertainty.draws, design.uncertainty.check_draws)
     check_study("the optimisation", m.grid("flex"), design.t_end_s, m.coupling_interval_s, draws, reverse=design.autodiff == "reverse")
     base_theta = design.constant(BASELINE["period_s"], BASELINE["post_displacement_mm"])
-    J0, V0, _ = jax.jit(design.evaluate)(base_theta)
+    J0, V0, _ = cache.call(_evaluate, design, base_theta)
     with tqdm(total=design.settings.grid_points**2, desc="grid", unit="protocol", disable=not progress) as bar:
         grid = grid_search(design, progress=bar.update)
     if grid.best is None:
