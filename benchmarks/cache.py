@@ -19,6 +19,7 @@ COMMANDS = {
     "simulate --regime flex": ["simulate", "--regime", "flex", "--no-progress"],
     "reproduce": ["reproduce", "--no-progress"],
     "calibrate (no profiles)": ["calibrate", os.path.join(ROOT, "calibrate", "engelmayr2005.toml"), "--no-profiles", "--no-progress"],
+    "sensitivity --regime flex": ["sensitivity", "--regime", "flex"],
     "optimize (short)": ["optimize", os.path.join(ROOT, "optimize", "max_collagen.toml"), "--starts", "2", "--steps", "3",
                          "--grid-points", "4", "--no-progress"],
 }

@@ -241,6 +241,25 @@ def test_sensitivities_match_finite_differences():
     assert table["EI_N_m2"]["E_s_kPa"] > 0
 
 
+@pytest.mark.slow  # compiles a gradient; saved programs' loading: tests/test_cache.py
+def test_sensitivities_are_a_program_a_second_process_loads(tmp_path, monkeypatch):
+    """Where the command line saves programs, a second process loads the sensitivities'
+    program (here: the programs in memory forgotten, tracing and compiling forbidden)
+    and gets the same table. (Not with `fixed_steps`: diffrax checks their times with a
+    host callback.)"""
+    from jaxtissue import cache
+
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    p, grid = jt.paper_parameters(), jt.Grid(1, 8)
+    with cache.saved_executables(tmp_path):
+        table = jt.sensitivity.sensitivities(p, jt.Protocol.static(), jt.THREE_WEEKS_S, grid=grid)
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            for where, name in ((cache, "_compile"), (sys.modules["jaxtissue.studies.sensitivity"], "simulate")):
+                m.setattr(where, name, lambda *a, name=name, **k: pytest.fail(f"{name} again"))
+            assert jt.sensitivity.sensitivities(p, jt.Protocol.static(), jt.THREE_WEEKS_S, grid=grid) == table
+
+
 @pytest.mark.slow
 def test_sensitivity_command(tmp_path, capsys):
     out = tmp_path / "s"

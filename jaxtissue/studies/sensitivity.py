@@ -3,12 +3,11 @@ parameter and protocol field, one reverse-mode pass per output."""
 
 from __future__ import annotations
 
-import functools
-
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .. import limits
+from .. import cache, limits
 from ..grid import Grid
 from ..params import Params
 from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol
@@ -31,11 +30,7 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), params)
     protocol = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), protocol)
 
-    def outputs(p, q):  # the end state only: no series to differentiate, and no host callback (a cached program)
-        r = simulate(p, q, t_end_s, **{**simulate_kw, "save": "end"})
-        return jnp.stack([getattr(r, k)[-1] for k in SENSITIVITY_OUTPUTS])
-
-    values, (gp, gq) = jax.jit(functools.partial(_values_and_jacobian, outputs))(params, protocol)  # freed with `outputs`
+    values, (gp, gq) = cache.call(_values_and_jacobian, params, protocol, float(t_end_s), simulate_kw)
     out = {}
     for i, key in enumerate(SENSITIVITY_OUTPUTS):
         y = float(values[i])
@@ -48,9 +43,15 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
     return out
 
 
-def _values_and_jacobian(outputs, params, protocol):
-    """`outputs(params, protocol)` and its Jacobian from one forward pass (`jax.vjp`),
-    the reverse passes vmapped over the outputs' unit cotangents (as `jax.jacrev` does,
-    which would run the forward pass again for the values)."""
+@eqx.filter_jit
+def _values_and_jacobian(params, protocol, t_end_s, simulate_kw):
+    """The outputs at `t_end_s` and their Jacobian from one forward pass (`jax.vjp`), the
+    reverse passes vmapped over the outputs' unit cotangents (as `jax.jacrev` does, which
+    would run the forward pass again for the values). A program the command line saves."""
+
+    def outputs(p, q):  # the end state only: no series to differentiate, and no host callback (a cached program)
+        r = simulate(p, q, t_end_s, **{**simulate_kw, "save": "end"})
+        return jnp.stack([getattr(r, k)[-1] for k in SENSITIVITY_OUTPUTS])
+
     values, pullback = jax.vjp(outputs, params, protocol)
     return values, jax.vmap(pullback)(jnp.eye(values.size, dtype=values.dtype))
