@@ -573,3 +573,13 @@ def loading_cycle(beam: Beam, period_s, u_max_m, hold_fraction, keep_fields: boo
         failed=jnp.any(hist["failed"]),
         fields=fields,
     )
+
+
+@eqx.filter_jit
+def uniform_cycle(si: SIParams, pins: str, grid: BeamGrid, ny: int, ecm, period_s, u_max_m, hold_fraction):
+    """The beam of a strip whose every layer holds the ECM fraction `ecm`, and its
+    loading cycle with the fields (`loading_cycle(keep_fields=True)`): `jaxtissue
+    cycle`'s one program."""
+    material = Material.from_ecm(jnp.full((grid.n_segments - 1, ny), ecm), si)
+    beam = Beam(Geometry.from_params(si, pins), material, grid)
+    return beam, loading_cycle(beam, period_s, u_max_m, hold_fraction, keep_fields=True)
