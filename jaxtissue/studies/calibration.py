@@ -245,12 +245,17 @@ class FitResult(NamedTuple):
     jacobian: np.ndarray  # ∂r/∂t at the best end (exact: the solve's own where it converged)
 
 
-@eqx.filter_jit
+@functools.lru_cache(maxsize=8)
+def _jitted(program, problem: Problem):
+    """`program` jitted for `problem`: its compiled programs are freed with the problem's
+    once 8 other problems' have been used since."""
+    return eqx.filter_jit(program)
+
+
 def _residuals_program(problem: Problem, t):
     return problem.residuals(t)
 
 
-@eqx.filter_jit
 def _jacobian_program(problem: Problem, t):
     return jax.jacfwd(problem.residuals)(t)
 
@@ -259,10 +264,10 @@ def _compiled(problem: Problem, jacobian: bool):
     """`f(t)`: the problem's compiled residuals or their forward-mode Jacobian (as
     `lm_solver`'s, compiled once per problem and saved where the command line saves its
     programs)."""
-    return functools.partial(cache.call, _jacobian_program if jacobian else _residuals_program, problem)
+    program = _jacobian_program if jacobian else _residuals_program
+    return functools.partial(cache.call, _jitted(program, problem), problem)
 
 
-@eqx.filter_jit
 def _lm_program(problem: Problem, batch: int, t0, args):
     s = problem.fit
     solve = lm_solve(problem, max(s.max_steps, s.profile_max_steps))
@@ -278,7 +283,7 @@ def lm_solver(problem: Problem, batch: int):
     `jaxtissue calibrate` of the same problem loads it instead of tracing it again, as
     a repr names the problem completely (a `Problem` holding arrays is compiled afresh
     in every process)."""
-    return functools.partial(cache.call, _lm_program, problem, batch)
+    return functools.partial(cache.call, _jitted(_lm_program, problem), problem, batch)
 
 
 def pinned(i: int, t_i: float, max_steps: int, also: tuple[int, float] = (-1, 0.0)):

@@ -239,20 +239,19 @@ class GridResult(NamedTuple):
     compile_seconds: float
 
 
-def _prepared(jitted, *args):
-    """`jitted`'s program for `args`, compiled (or, where the command line saves its
-    programs, loaded: `cache.prepared`), and the seconds that took."""
+def _prepared(program, *args):
+    """`program`'s compiled program for `args` (or, where the command line saves its
+    programs, loaded: `cache.prepared`), and the seconds that took. Jitted here: the
+    compiled program is freed with the function returned."""
     t0 = time.perf_counter()
-    run = cache.prepared(jitted, *args)
+    run = cache.prepared(eqx.filter_jit(program), *args)
     return run, time.perf_counter() - t0
 
 
-@eqx.filter_jit
 def _evaluate(design: Design, theta):
     return design.evaluate(theta)
 
 
-@eqx.filter_jit
 def _grid_batch(design: Design, thetas):
     """`design.evaluate` of the protocols θ (rows of `thetas`) at once, over the devices."""
     return vmap_over_devices(design.evaluate, thetas.shape[0])(thetas)
@@ -263,7 +262,6 @@ def _adam(settings: OptimizerSettings):
     return optax.apply_if_finite(optax.adam(schedule), max_consecutive_errors=settings.steps)
 
 
-@eqx.filter_jit
 def _adam_steps(design: Design, z, state, lam, scale):
     """An Adam step on the augmented Lagrangian from each start (rows of z, their Adam
     states and multipliers) at once, over the devices: (z, state, (θ, objective,
@@ -411,7 +409,7 @@ def run(design: Design, progress: bool = False) -> Study:
     draws = 1 if design.uncertainty is None else max(design.uncertainty.draws, design.uncertainty.check_draws)
     check_study("the optimisation", m.grid("flex"), design.t_end_s, m.coupling_interval_s, draws, reverse=design.autodiff == "reverse")
     base_theta = design.constant(BASELINE["period_s"], BASELINE["post_displacement_mm"])
-    J0, V0, _ = cache.call(_evaluate, design, base_theta)
+    J0, V0, _ = cache.call(eqx.filter_jit(_evaluate), design, base_theta)
     with tqdm(total=design.settings.grid_points**2, desc="grid", unit="protocol", disable=not progress) as bar:
         grid = grid_search(design, progress=bar.update)
     if grid.best is None:

@@ -30,7 +30,8 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), params)
     protocol = jax.tree_util.tree_map(lambda x: jnp.asarray(x, float), protocol)
 
-    values, (gp, gq) = cache.call(_values_and_jacobian, params, protocol, float(t_end_s), simulate_kw)
+    program = eqx.filter_jit(_values_and_jacobian)  # jitted here: its compiled program is freed with it
+    values, (gp, gq) = cache.call(program, params, protocol, float(t_end_s), simulate_kw)
     out = {}
     for i, key in enumerate(SENSITIVITY_OUTPUTS):
         y = float(values[i])
@@ -43,7 +44,6 @@ def sensitivities(params: Params, protocol: Protocol, t_end_s: float = THREE_WEE
     return out
 
 
-@eqx.filter_jit
 def _values_and_jacobian(params, protocol, t_end_s, simulate_kw):
     """The outputs at `t_end_s` and their Jacobian from one forward pass (`jax.vjp`), the
     reverse passes vmapped over the outputs' unit cotangents (as `jax.jacrev` does, which
