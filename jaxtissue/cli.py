@@ -334,7 +334,8 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--grid NY = {ny} must be at least 3")
     grid = Grid(nx=nx, ny=ny)
     io.check_output_folder(args.out, args.overwrite)
-    options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps)
+    # a static series interval by interval: a program the cache can keep (as a fitted file's options have it)
+    options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps, static_series="intervals")
     resolution = {}
     if getattr(args, "params", None) and not args.grid:  # a fitted file: simulate at the resolution of the fit
         from .studies.calibration import fitted_model
@@ -346,7 +347,6 @@ def cmd_simulate(args) -> int:
             resolution = {"beam": fitted.beam(), "coupling_interval_s": fitted.coupling_interval_s}
             print(f"model resolution from {args.params} [model]: grid {grid.nx} x {grid.ny}, beam {fitted.beam_segments} x "
                   f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
-    options = dataclasses.replace(options, static_series="intervals")  # a static series the cache can keep
     progress = args.progress if args.progress is not None else \
         _long_run(grid.nx * grid.ny, args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S), args.regime)
     kept = pathlib.Path(f"{args.out}.checkpoint")
