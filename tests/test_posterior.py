@@ -288,6 +288,25 @@ class _RidgeFromACorner(_StandIn):
         return jnp.stack([(t[1] - 0.9 * t[0]) / 0.01, t[0] / 0.3])
 
 
+def test_whitening_follows_a_ridge_out_of_an_optimum_on_the_bounds():
+    """The sampler's coordinates at an optimum on two bounds: standard normal z maps to
+    points along the ridge running out of the corner (the Laplace covariance in t, not in
+    u, where dt/du ≈ 0 would hide it), with the posterior's means and SDs (quadrature) to
+    within a fraction of an SD, and O(1) starts (the draws themselves:
+    test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds, slow)."""
+    problem = _RidgeFromACorner()
+    t_best = jnp.zeros(2)
+    white = post.whitening(problem, t_best, jax.jacfwd(problem.residuals)(t_best))
+    z = np.random.default_rng(0).normal(size=(4000, 2))
+    t = np.asarray(post.t_from_u(problem.free, post.u_from_z(problem.free, white.args(), jnp.asarray(z))))
+    exact, sd = _unit_square_moments(lambda a, b: -0.5 * (((b - 0.9 * a) / 0.01) ** 2 + (a / 0.3) ** 2), 2000)
+    assert np.all(np.abs(t.mean(axis=0) - exact) < 0.25 * sd)
+    np.testing.assert_allclose(t.std(axis=0), sd, rtol=0.25)
+    assert np.std(t[:, 1] - 0.9 * t[:, 0]) < 0.03  # across the ridge: its width, 0.01
+    assert np.all(np.abs(white.z0) < 5)
+
+
+@pytest.mark.slow  # the default run: test_whitening_follows_a_ridge_out_of_an_optimum_on_the_bounds
 def test_sample_follows_a_ridge_out_of_an_optimum_on_the_bounds():
     """The whitening takes the Laplace covariance in t, not in u: at an optimum on a
     bound dt/du ≈ 0, which hid the ridge (both parameters looked free; 8-9 leapfrog steps
@@ -505,6 +524,7 @@ def _funnel(v, correction):
     return -0.5 * a**2 - 0.5 * (b / (0.1 * jnp.exp(0.5 * a))) ** 2 - 0.5 * a + log_j
 
 
+@pytest.mark.slow  # the default run: test_warmup_correction_inverts_and_measures_a_ridge_the_shears_miss
 def test_the_warmup_correction_speeds_up_a_ridge_of_changing_width():
     """On the funnel (`_funnel`), the correction measured halfway through the warmup
     (`run_chains(refit=...)`) lets NUTS take longer steps: more effective samples of a per
@@ -618,6 +638,7 @@ def _split_chains_settings():
     return post.SamplerSettings(chains=4, warmup=40, samples=20)
 
 
+@pytest.mark.slow  # a process of its own; the default run: test_the_cpu_is_split_a_device_per_chain_for_coupled_densities
 def test_chains_split_over_devices_give_the_same_draws(tmp_path):
     """Four chains over four CPU devices, one a chain as the command line makes them for
     a coupled density (a process of its own: the device count is fixed at start-up),
