@@ -40,8 +40,8 @@ sys.path.insert(0, str(ROOT / "tests"))  # the independent SciPy reference, shar
 
 # The files that take longest start first: two workers (`--dist loadfile`) then finish
 # together instead of one running a long file alone at the end.
-LONGEST_FIRST = ("test_posterior.py", "test_posterior_study.py", "test_coupling.py", "test_solver.py", "test_beam.py",
-                 "test_growth.py")
+LONGEST_FIRST = ("test_posterior_study.py", "test_posterior.py", "test_coupling.py", "test_solver.py", "test_beam.py",
+                 "test_gradients.py", "test_growth.py")
 
 
 def pytest_collection_modifyitems(items):

@@ -76,6 +76,7 @@ def test_a_lost_worker_changes_nothing(tmp_path, serial):
     assert_same(out / "sweep.nc", serial)
 
 
+@pytest.mark.slow  # the default run: test_a_lost_worker_changes_nothing, tests/test_sweep.py::test_interrupted_sweep_resumes_to_the_same_file
 def test_a_killed_client_resumes(tmp_path, serial):
     """The client killed once a chunk is in the Zarr store: `--resume` runs the rest and
     writes the serial run's `sweep.nc`. (Chunks the killed client may still have
