@@ -22,6 +22,7 @@ COMMANDS = {
     "sensitivity --regime flex": ["sensitivity", "--regime", "flex"],
     "optimize (short)": ["optimize", os.path.join(ROOT, "optimize", "max_collagen.toml"), "--starts", "2", "--steps", "3",
                          "--grid-points", "4", "--no-progress"],
+    "sweep sweeps/kinetics.toml": ["sweep", os.path.join(ROOT, "sweeps", "kinetics.toml"), "--no-progress"],
 }
 
 

@@ -1,5 +1,6 @@
 """Batch sweeps (values, devices, resume, files) and local sensitivities."""
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -54,6 +55,30 @@ def test_grid_sweep_equals_single_runs(static_file, tmp_path):
         for k, v in ref.items():
             assert float(ds[k][i, j]) == pytest.approx(v, rel=1e-9), k
     assert xr.load_dataset(tmp_path / "out" / "sweep.nc").equals(ds)
+
+
+def test_a_second_sweep_loads_its_program(static_file, tmp_path, monkeypatch):
+    """Where the command line saves programs, a later sweep of the same model loads its
+    chunks' program, named by the model alone (`Sweep.model_only`): here with the
+    programs in memory forgotten and tracing and compiling forbidden, for other points,
+    it gives the same values as a run of those points in memory."""
+    from jaxtissue import cache
+
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    sweep = sw.read_sweep(static_file)
+    moved = dataclasses.replace(sweep, points=sweep.points[::-1].copy())
+    expected = sw.run(moved, tmp_path / "in_memory")
+    with cache.saved_executables(tmp_path / "programs"):
+        sw.run(sweep, tmp_path / "first")
+        assert len(list((tmp_path / "programs").glob("*.jtx"))) == 1
+        monkeypatch.setattr(cache, "_loaded", {})  # as in a new process
+        monkeypatch.setattr(sw, "_BATCHED", {})
+        with monkeypatch.context() as m:
+            for where, name in ((cache, "_compile"), (sw, "simulate")):
+                m.setattr(where, name, lambda *a, name=name, **k: pytest.fail(f"{name} again"))
+            again = sw.run(moved, tmp_path / "second")
+    for k in ("dna_ug_per_g", "collagen_mg_per_g", "E_eff_kPa"):
+        np.testing.assert_array_equal(again[k].values, expected[k].values)
 
 
 @pytest.mark.slow  # sharding over devices: test_cli_sweep_uses_every_core

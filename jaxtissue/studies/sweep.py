@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .. import limits
+from .. import cache, limits
 from ..beam import BeamGrid
 from ..cache import add_xla_flag
 from ..grid import Grid
@@ -81,6 +81,11 @@ class Sweep:
 
     def times(self) -> np.ndarray:
         return save_times(self.t_end_s, self.coupling_interval_s)
+
+    def model_only(self) -> "Sweep":
+        """The sweep without its points (and file text): what decides its chunks' program,
+        and what names it among saved programs (`jaxtissue.cache.call`)."""
+        return dataclasses.replace(self, points=None, axes=None, source="")
 
 
 # ---------------------------------------------------------------------------------------
@@ -272,19 +277,27 @@ def batched(sweep: Sweep):
     return _BATCHED[key]
 
 
+def _chunk(model: Sweep, values):
+    """`model.run_one` of each row of `values`."""
+    return jax.vmap(model.run_one)(values)
+
+
 def _batched(sweep: Sweep):
     devices = jax.devices()
     mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    fn = jax.jit(jax.vmap(sweep.run_one), in_shardings=sharding)
+    # where the command line saves its programs, a later sweep of the same model loads it
+    model = sweep.model_only()
+    fn = eqx.filter_jit(_chunk)  # the batch axis split as the values are (`sharding`)
 
     def run(values: np.ndarray) -> dict:
         x = jax.make_array_from_callback(values.shape, sharding, lambda index: values[index])
-        out = fn(x)
-        if jax.process_count() > 1:
+        if jax.process_count() > 1:  # one program over several processes: compiled by each
             from jax.experimental import multihost_utils
 
-            out = multihost_utils.process_allgather(out, tiled=True)
+            out = multihost_utils.process_allgather(fn(model, x), tiled=True)
+        else:
+            out = cache.call(fn, model, x)
         return jax.tree_util.tree_map(np.asarray, out)
 
     return run, len(devices)
