@@ -23,6 +23,7 @@ COMMANDS = {
     "optimize (short)": ["optimize", os.path.join(ROOT, "optimize", "max_collagen.toml"), "--starts", "2", "--steps", "3",
                          "--grid-points", "4", "--no-progress"],
     "sweep sweeps/kinetics.toml": ["sweep", os.path.join(ROOT, "sweeps", "kinetics.toml"), "--no-progress"],
+    "sweep --dask local:2": ["sweep", os.path.join(ROOT, "sweeps", "kinetics.toml"), "--dask", "local:2", "--no-progress"],
 }
 
 

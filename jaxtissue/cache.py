@@ -181,6 +181,12 @@ def saved_executables(folder: str | os.PathLike | None):
         _folder = previous
 
 
+def saved_folder() -> pathlib.Path | None:
+    """The folder that `saved_executables` keeps programs in here and now (None: off):
+    what a sweep's Dask workers are given to keep theirs in (`sweep_dask.run`)."""
+    return _folder
+
+
 def call(jitted, *args):
     """`jitted(*args)`, for an `eqx.filter_jit` function (array leaves traced, the rest
     static), through a saved executable where `saved_executables` is on and no argument

@@ -53,6 +53,30 @@ def chunks_done(out) -> int:
         return 0
 
 
+def test_a_workers_chunk_program_is_kept_in_the_clients_folder(tmp_path, monkeypatch, serial):
+    """`sweep_dask.run_chunk_saving`, each chunk's task: given the client's folder of
+    saved programs (`cache.saved_folder`) it saves its program there, and a later worker
+    (here: the programs in memory forgotten, tracing and compiling forbidden) loads it
+    and gives the serial run's values."""
+    from jaxtissue import cache
+    from jaxtissue.studies import sweep_dask
+
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    sweep, folder = sw.read_sweep(SHIPPED), tmp_path / "programs"
+    with cache.saved_executables(folder):
+        assert cache.saved_folder() == folder
+    sweep_dask.run_chunk_saving(sweep, 0, folder)
+    assert len(list(folder.glob("*.jtx"))) == 1 and cache.saved_folder() is None
+    monkeypatch.setattr(cache, "_loaded", {})  # as in a new worker
+    monkeypatch.setattr(sw, "_BATCHED", {})
+    with monkeypatch.context() as m:
+        for where, name in ((cache, "_compile"), (sw, "simulate")):
+            m.setattr(where, name, lambda *a, name=name, **k: pytest.fail(f"{name} again"))
+        again = sweep_dask.run_chunk_saving(sweep, 2, folder)
+    for k in OUTPUTS:
+        np.testing.assert_allclose(again[k], serial[k].values.ravel()[2:4], rtol=1e-12)
+
+
 def test_a_lost_worker_changes_nothing(tmp_path, serial):
     """A worker process killed while it works on its first chunk: Dask re-runs its tasks
     and `sweep.nc` equals the serial run's to 1e-12."""
@@ -72,6 +96,7 @@ def test_a_lost_worker_changes_nothing(tmp_path, serial):
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 0, stderr[-2000:]
     assert "16 parameter sets, 0 failed" in stdout
+    assert "leaked" not in stderr  # the local cluster shut down with its client, not left to the process's end
     assert not victim.is_running()
     assert_same(out / "sweep.nc", serial)
 

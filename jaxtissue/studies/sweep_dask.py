@@ -1,7 +1,8 @@
 """Sweeps on a Dask cluster (dask.distributed), written into a Zarr store.
 
 Each chunk of a `Sweep` is one Dask task: in a worker process, one jitted, vmapped
-batch (`sweep.batched`, compiled once per worker). The client writes each finished
+batch (`sweep.batched`, compiled once per worker, or loaded where the client saves its
+programs: `run_chunk_saving`). The client writes each finished
 chunk into `DIR/sweep.zarr` by region (`xarray.Dataset.to_zarr(region=...)`) and marks
 it done, so that `resume=True` skips the regions already written; at the end it writes
 `DIR/sweep.nc`, the file a serial run writes. Dask re-runs the tasks of a worker that
@@ -12,12 +13,14 @@ dask-jobqueue cluster on SLURM (docs/numerics.md).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import pathlib
 import re
 
 import numpy as np
 
+from .. import cache
 from ..io import InputError, RunError, write_netcdf
 from ..result import SCALARS
 from .sweep import Sweep, fingerprint, run_chunk, to_dataset
@@ -43,21 +46,28 @@ def check_cluster(cluster: str) -> int | None:
     return None
 
 
+@contextlib.contextmanager
 def client(cluster: str):
     """A `dask.distributed.Client` for `"local:N"` (a new LocalCluster of N worker
-    processes, one thread each) or a scheduler address (`check_cluster`)."""
+    processes, one thread each, shut down with the client) or a scheduler address
+    (`check_cluster`), as a context."""
     from dask.distributed import Client, LocalCluster
 
     n = check_cluster(cluster)
     if n is not None:
         try:
-            return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+            local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
         except (RuntimeError, OSError, TimeoutError) as err:  # e.g. a worker process that dies while starting
             raise ClusterError(f"the Dask cluster {cluster} did not start ({err})") from None
+        with local, Client(local) as dask:  # a client given a cluster leaves it running
+            yield dask
+        return
     try:
-        return Client(cluster)  # waits up to dask's distributed.comm.timeouts.connect
+        remote = Client(cluster)  # waits up to dask's distributed.comm.timeouts.connect
     except OSError as err:
         raise InputError(f"`dask` = {cluster!r}: no scheduler there ({err})") from None
+    with remote:
+        yield remote
 
 
 def _empty_store(sweep: Sweep, store: pathlib.Path, stamp: dict) -> None:
@@ -87,6 +97,14 @@ def _write_region(store: pathlib.Path, start: int, width: int, result: dict) -> 
     done.to_zarr(store, region={"chunk": slice(start // width, start // width + 1)}, consolidated=False)  # after the values
 
 
+def run_chunk_saving(sweep: Sweep, start: int, programs: pathlib.Path | None):
+    """`run_chunk` in a worker, its program loaded from or saved in the client's folder
+    of saved programs `programs` (`cache.saved_folder`; None: compiled in memory), so
+    that the workers of a later sweep of the same model load it."""
+    with cache.saved_executables(programs):
+        return run_chunk(sweep, start)
+
+
 def run(sweep: Sweep, out, cluster: str, resume: bool = False, progress: bool = False):
     """Run every chunk not yet in `out/sweep.zarr` as a Dask task on `cluster`, then
     write `out/sweep.nc`. Returns the `xarray.Dataset` (equal to `sweep.run`'s)."""
@@ -111,7 +129,8 @@ def run(sweep: Sweep, out, cluster: str, resume: bool = False, progress: bool = 
         if fresh:  # the store once the cluster is there: a cluster that fails leaves nothing
             out.mkdir(parents=True, exist_ok=True)
             _empty_store(sweep, store, stamp)
-        futures = {dask.submit(run_chunk, sweep, s, pure=False): s for s in starts}
+        programs = cache.saved_folder()
+        futures = {dask.submit(run_chunk_saving, sweep, s, programs, pure=False): s for s in starts}
         for future in as_completed(futures):
             _write_region(store, futures[future], sweep.chunk, future.result())
             bar.update(1)
