@@ -1,7 +1,8 @@
 """Two identical cold command-line runs in fresh processes, sharing a new, empty
 compilation cache folder (`jaxtissue.cache`): the second loads its programs from disk.
-Prints each run's wall time and the second's share of the first. The optimisation is
-cut short (2 starts of 3 steps, a 4 × 4 grid): its compilation is the same.
+Prints each run's wall time and the second's share of the first. The posterior (of the
+static data: `--hold-out flex`) and the optimisation are cut short (2 chains of 40 + 40
+draws; 2 starts of 3 steps, a 4 × 4 grid): their compilation is the same.
 
     python benchmarks/cache.py [--simulate-only]
 """
@@ -19,6 +20,9 @@ COMMANDS = {
     "simulate --regime flex": ["simulate", "--regime", "flex", "--no-progress"],
     "reproduce": ["reproduce", "--no-progress"],
     "calibrate (no profiles)": ["calibrate", os.path.join(ROOT, "calibrate", "engelmayr2005.toml"), "--no-profiles", "--no-progress"],
+    "calibrate --posterior (short)": ["calibrate", os.path.join(ROOT, "calibrate", "engelmayr2005.toml"), "--no-profiles",
+                                      "--posterior", "--chains", "2", "--warmup", "40", "--samples", "40", "--hold-out", "flex",
+                                      "--no-progress"],
     "sensitivity --regime flex": ["sensitivity", "--regime", "flex"],
     "optimize (short)": ["optimize", os.path.join(ROOT, "optimize", "max_collagen.toml"), "--starts", "2", "--steps", "3",
                          "--grid-points", "4", "--no-progress"],

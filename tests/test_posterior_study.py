@@ -62,6 +62,58 @@ def test_log_likelihood_gradient_matches_central_differences(static_problem):
         assert ad[i] == pytest.approx(fd, rel=1e-4, abs=1e-8), i
 
 
+def _named_by(problem, settings, phases, x):
+    """A program taking what `post.whitened_programs`' take as static arguments."""
+    return x * settings.chains + phases + len(problem.free)
+
+
+def test_the_samplers_programs_are_named_by_the_problem_and_its_settings(static_problem, tmp_path, monkeypatch):
+    """`whitened_programs` take the problem, the sampler's settings and the warmup's parts
+    as static arguments (`cache.call`): for a problem read from its file they name a
+    saved program, which a second process (here: the programs in memory forgotten,
+    compiling forbidden, the problem read again) loads (the cheap version of
+    test_a_second_posterior_loads_its_sampler)."""
+    import equinox as eqx
+
+    from jaxtissue import cache
+    from jaxtissue.studies import calibration as cal
+
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    problem, folder = static_problem
+    settings, x, program = post.SamplerSettings(chains=2), np.arange(3.0), eqx.filter_jit(_named_by)
+    with cache.saved_executables(tmp_path):
+        cache.call(program, problem, settings, 3, x)
+        assert len(list(tmp_path.glob("*.jtx"))) == 1
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+            again = cal.read_problem(folder / "problem.toml")
+            np.testing.assert_array_equal(cache.call(program, again, post.SamplerSettings(chains=2), 3, x + 1.0), (x + 1.0) * 2 + 5)
+
+
+@pytest.mark.slow  # compiles the sampler's programs; the test above is its cheap version
+def test_a_second_posterior_loads_its_sampler(static_problem, tmp_path, monkeypatch):
+    """Where the command line saves programs, a second process's sampler (here: the
+    programs in memory forgotten, tracing and compiling forbidden) loads its warmup's and
+    draws' programs and draws the same."""
+    from jaxtissue import cache
+
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    problem, _ = static_problem
+    t = problem.t_from_values([1.7e-7, 1.0])
+    jac = jax.jacfwd(problem.residuals)(t)
+    settings = post.SamplerSettings(chains=2, warmup=40, samples=20)
+    with cache.saved_executables(tmp_path):
+        first = post.sample(problem, t, jac, settings)
+        assert len(list(tmp_path.glob("*.jtx"))) == 3  # the ridge's profile solves, the warmup's and the draws'
+        monkeypatch.setattr(cache, "_loaded", {})
+        with monkeypatch.context() as m:
+            for where, name in ((cache, "_compile"), (post, "log_density_fn")):
+                m.setattr(where, name, lambda *a, name=name, **k: pytest.fail(f"{name} again"))
+            again = post.sample(problem, t, jac, settings)
+    np.testing.assert_array_equal(again.u, first.u)
+
+
 @pytest.fixture(scope="module")
 def sampled(static_problem):
     """`jaxtissue calibrate --posterior` on the small problem: its folder and stdout."""

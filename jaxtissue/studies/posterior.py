@@ -820,7 +820,17 @@ def fit_correction(positions, lead: int, bins: int = CORRECTION_BINS) -> Correct
 def whitened_programs(problem: Problem, settings: SamplerSettings):
     """`nuts_programs` of the posterior in the corrected coordinates v (`z_from_v` of
     `whitening`'s z), with args = (`Whitening.args()`, `Correction`); their warmup in
-    `warmup_phases(settings)` parts, `correct` run between them."""
+    `warmup_phases(settings)` parts, `correct` run between them. Jitted here (the
+    compiled programs are freed with the functions returned) and named by the problem's
+    and the settings' reprs: where the command line saves its programs, a second run
+    loads them (`cache.call`)."""
+    phases = warmup_phases(settings)
+    adapt, draws = eqx.filter_jit(_whitened_adapt), eqx.filter_jit(_whitened_draws)
+    return (functools.partial(cache.call, adapt, problem, settings, phases),
+            functools.partial(cache.call, draws, problem, settings, phases))
+
+
+def _log_density_in_v(problem: Problem):
     log_density = log_density_fn(problem)
 
     def in_v(v, args):
@@ -828,7 +838,15 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
         z, log_det = z_from_v(correction, v)
         return log_density(u_from_z(problem.free, white, z)) + log_det
 
-    return nuts_programs(in_v, settings, warmup_phases(settings))
+    return in_v
+
+
+def _whitened_adapt(problem: Problem, settings: SamplerSettings, phases: int, *args):
+    return nuts_programs(_log_density_in_v(problem), settings, phases)[0](*args)
+
+
+def _whitened_draws(problem: Problem, settings: SamplerSettings, phases: int, *args):
+    return nuts_programs(_log_density_in_v(problem), settings, phases)[1](*args)
 
 
 def u_from_v(problem: Problem, args, v):
@@ -905,9 +923,16 @@ def model_values(problem: Problem, t, batch: int = 25, progress=None) -> np.ndar
     return problem.model_from_residuals(r).reshape(*np.shape(t)[:-1], -1)
 
 
+def _residual_batch(problem: Problem, size: int, rows):
+    """`problem.residuals` of each of the `size` rows, split over the devices."""
+    return vmap_over_devices(problem.residuals, size)(rows)
+
+
 @functools.lru_cache(maxsize=4)
 def _batched_residuals(problem: Problem, size: int):
-    return jax.jit(vmap_over_devices(problem.residuals, size))
+    """`_residual_batch` for `problem`, jitted once per problem: named by its repr where
+    the command line saves its programs, so that a second run loads it (`cache.call`)."""
+    return functools.partial(cache.call, eqx.filter_jit(_residual_batch), problem, size)
 
 
 def _in_batches(run, rows: np.ndarray, batch: int, progress=None) -> list:
