@@ -831,6 +831,7 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
 
 
 def _log_density_in_v(problem: Problem):
+    """ln p in the sampler's coordinates v, `(v, args) -> float` (`whitened_programs`)."""
     log_density = log_density_fn(problem)
 
     def in_v(v, args):
@@ -842,10 +843,12 @@ def _log_density_in_v(problem: Problem):
 
 
 def _whitened_adapt(problem: Problem, settings: SamplerSettings, phases: int, *args):
+    """`nuts_programs`' adapt of `_log_density_in_v(problem)` on `args`."""
     return nuts_programs(_log_density_in_v(problem), settings, phases)[0](*args)
 
 
 def _whitened_draws(problem: Problem, settings: SamplerSettings, phases: int, *args):
+    """`nuts_programs`' draws of `_log_density_in_v(problem)` on `args`."""
     return nuts_programs(_log_density_in_v(problem), settings, phases)[1](*args)
 
 
