@@ -62,9 +62,9 @@ def test_log_likelihood_gradient_matches_central_differences(static_problem):
         assert ad[i] == pytest.approx(fd, rel=1e-4, abs=1e-8), i
 
 
-def _named_by(problem, settings, phases, x):
+def _named_by(problem, settings, phases, which, x):
     """A program taking what `post.whitened_programs`' take as static arguments."""
-    return x * settings.chains + phases + len(problem.free)
+    return x * settings.chains + phases + which + len(problem.free)
 
 
 def test_the_samplers_programs_are_named_by_the_problem_and_its_settings(static_problem, tmp_path, monkeypatch):
@@ -82,13 +82,13 @@ def test_the_samplers_programs_are_named_by_the_problem_and_its_settings(static_
     problem, folder = static_problem
     settings, x, program = post.SamplerSettings(chains=2), np.arange(3.0), eqx.filter_jit(_named_by)
     with cache.saved_executables(tmp_path):
-        cache.call(program, problem, settings, 3, x)
+        cache.call(program, problem, settings, 3, 0, x)
         assert len(list(tmp_path.glob("*.jtx"))) == 1
         monkeypatch.setattr(cache, "_loaded", {})
         with monkeypatch.context() as m:
             m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
             again = cal.read_problem(folder / "problem.toml")
-            np.testing.assert_array_equal(cache.call(program, again, post.SamplerSettings(chains=2), 3, x + 1.0), (x + 1.0) * 2 + 5)
+            np.testing.assert_array_equal(cache.call(program, again, post.SamplerSettings(chains=2), 3, 0, x + 1.0), (x + 1.0) * 2 + 5)
 
 
 @pytest.mark.slow  # compiles the sampler's programs; the test above is its cheap version

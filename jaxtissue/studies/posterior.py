@@ -824,10 +824,9 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
     compiled programs are freed with the functions returned) and named by the problem's
     and the settings' reprs: where the command line saves its programs, a second run
     loads them (`cache.call`)."""
-    phases = warmup_phases(settings)
-    adapt, draws = eqx.filter_jit(_whitened_adapt), eqx.filter_jit(_whitened_draws)
-    return (functools.partial(cache.call, adapt, problem, settings, phases),
-            functools.partial(cache.call, draws, problem, settings, phases))
+    program = eqx.filter_jit(_whitened_program)
+    return tuple(functools.partial(cache.call, program, problem, settings, warmup_phases(settings), which)
+                 for which in (0, 1))
 
 
 def _log_density_in_v(problem: Problem):
@@ -842,14 +841,9 @@ def _log_density_in_v(problem: Problem):
     return in_v
 
 
-def _whitened_adapt(problem: Problem, settings: SamplerSettings, phases: int, *args):
-    """`nuts_programs`' adapt of `_log_density_in_v(problem)` on `args`."""
-    return nuts_programs(_log_density_in_v(problem), settings, phases)[0](*args)
-
-
-def _whitened_draws(problem: Problem, settings: SamplerSettings, phases: int, *args):
-    """`nuts_programs`' draws of `_log_density_in_v(problem)` on `args`."""
-    return nuts_programs(_log_density_in_v(problem), settings, phases)[1](*args)
+def _whitened_program(problem: Problem, settings: SamplerSettings, phases: int, which: int, *args):
+    """`nuts_programs`' adapt (`which` 0) or draws (1) of `_log_density_in_v(problem)` on `args`."""
+    return nuts_programs(_log_density_in_v(problem), settings, phases)[which](*args)
 
 
 def u_from_v(problem: Problem, args, v):

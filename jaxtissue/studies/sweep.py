@@ -270,10 +270,10 @@ def batched(sweep: Sweep):
     """A jitted, vmapped run of a chunk of parameter sets; the chunk's batch axis is
     sharded over `jax.devices()`. Returns (function, devices); the chunk length must be
     a multiple of the device count. Sweeps of the same model share one function."""
-    key = repr((sweep.names, sweep.protocol, sweep.base, sweep.t_end_s, sweep.outputs, sweep.chunk, sweep.grid, sweep.beam,
-                sweep.coupling_interval_s, sweep.rtol, sweep.max_steps, jax.devices()))
+    model = sweep.model_only()
+    key = repr((model, jax.devices()))
     if key not in _BATCHED:
-        _BATCHED[key] = _batched(sweep)
+        _BATCHED[key] = _batched(model)
     return _BATCHED[key]
 
 
@@ -282,12 +282,12 @@ def _chunk(model: Sweep, values):
     return jax.vmap(model.run_one)(values)
 
 
-def _batched(sweep: Sweep):
+def _batched(model: Sweep):
+    """`batched` for a sweep's model (`Sweep.model_only`), which also names its program
+    where the command line saves its programs: a later sweep of the same model loads it."""
     devices = jax.devices()
     mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    # where the command line saves its programs, a later sweep of the same model loads it
-    model = sweep.model_only()
     fn = eqx.filter_jit(_chunk)  # the batch axis split as the values are (`sharding`)
 
     def run(values: np.ndarray) -> dict:
