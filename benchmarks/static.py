@@ -6,8 +6,10 @@ D_c = χ = 0: no cell flux, see `same_equations`; DNA, collagen and E_eff at
 target (max relative error of the 3-week values against a tight reference) the fastest
 run of each that reaches it is compared:
 
-* forward: `jt.simulate` (jitted, after compilation) versus `solve_ivp(BDF)` with the
-  Jacobian's sparsity pattern, `t_eval` those save times (`scipy_reference.py`);
+* forward: `jt.simulate` (jitted, after compilation) with each of its time steppers
+  (`SolverOptions.method`: "ros34pw2", the default, and "rodas4p2", order 4 with the
+  exact Jacobian of these 1-D runs) versus `solve_ivp(BDF)` with the Jacobian's
+  sparsity pattern, `t_eval` those save times (`scipy_reference.py`);
 * gradient of 3-week collagen with respect to all kinetic parameters: one reverse-mode
   pass versus central finite differences of the SciPy solve (2 solves per parameter),
   each at the loosest tolerance whose gradient is within `GRAD_TARGET` of a tight one;
@@ -74,8 +76,11 @@ def same_equations(p):
     return p.replace(D_c=base.D_c, chi=base.chi)
 
 
-def jax_forward(rtol, ny=NY):
-    options = jt.SolverOptions(rtol=rtol, atol=rtol * 1e-3)
+METHODS = ("ros34pw2", "rodas4p2")
+
+
+def jax_forward(rtol, ny=NY, method="ros34pw2"):
+    options = jt.SolverOptions(rtol=rtol, atol=rtol * 1e-3, method=method)
 
     @jax.jit
     def run(p):
@@ -155,33 +160,42 @@ def main():
     print("reference (SciPy, rtol 1e-11):", {k: round(v, 6) for k, v in reference.items()})
 
     # ---- compile time (default tolerance)
-    run = jax_forward(1e-5)
-    t0 = time.perf_counter()
-    jax.block_until_ready(run(p))
-    compile_s = time.perf_counter() - t0 - best_time(lambda: jax.block_until_ready(run(p)), 3)
+    compile_s = {}
+    for method in METHODS:
+        run = jax_forward(1e-5, method=method)
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(p))
+        compile_s[method] = time.perf_counter() - t0 - best_time(lambda: jax.block_until_ready(run(p)), 3)
 
     # ---- forward: work-precision ladders of both, then the fastest run at each target
-    jax_runs, sp_runs, steps = [], [], []
+    jax_runs, sp_runs = {m: [] for m in METHODS}, []
     for rtol in LADDER:
-        run = jax_forward(rtol)
-        values = {k: float(v) for k, v in run(p).items()}
-        jax_runs.append((rel_err(values, reference), best_time(lambda: jax.block_until_ready(run(p)), 10), rtol))
-        steps.append(int(values["steps"]))
+        for method in METHODS:
+            run = jax_forward(rtol, method=method)
+            values = {k: float(v) for k, v in run(p).items()}
+            jax_runs[method].append((rel_err(values, reference), best_time(lambda: jax.block_until_ready(run(p)), 10), rtol,
+                                     int(values["steps"])))
         sp_runs.append((rel_err(scipy_values(rtol), reference), best_time(lambda: scipy_values(rtol), 3), rtol))
     print("\nwork-precision (max rel. error of the 3-week values, best time)")
-    print(f"{'rtol':>8} | {'jaxtissue err':>13} {'ms':>8} {'steps':>6} {'us/step':>8} | {'SciPy BDF err':>13} {'ms':>8}")
-    for (je, jt_, r), (se, st, _), n in zip(jax_runs, sp_runs, steps):
-        print(f"{r:8.0e} | {je:13.1e} {jt_ * 1e3:8.2f} {n:6d} {jt_ / n * 1e6:8.1f} | {se:13.1e} {st * 1e3:8.2f}")
+    print(f"{'':8} | {'jaxtissue, ros34pw2 (default)':^37} | {'jaxtissue, rodas4p2':^37} | {'SciPy BDF':^22}")
+    print(f"{'rtol':>8} | {'err':>8} {'ms':>8} {'steps':>6} {'us/step':>8} | {'err':>8} {'ms':>8} {'steps':>6} {'us/step':>8}"
+          f" | {'err':>8} {'ms':>8}")
+    for i, (se, st, r) in enumerate(sp_runs):
+        cells = [f"{e:8.1e} {t * 1e3:8.2f} {n:6d} {t / n * 1e6:8.1f}" for e, t, _, n in (jax_runs[m][i] for m in METHODS)]
+        print(f"{r:8.0e} | " + " | ".join(cells) + f" | {se:8.1e} {st * 1e3:8.2f}")
     print(f"of a step: the O2 solve's Thomas factor and 4 solves alone {thomas_solve_seconds() * 1e6:.1f} us")
     costs, fixed, per_cell = step_cost_by_cells(p)
-    print(f"us a step at rtol {STEP_COST_RTOL:g} on {', '.join(map(str, STEP_COST_CELLS))} cells: " + ", ".join(f"{c:.1f}" for c in costs)
-          + f"; fitted {fixed:.1f} us + {per_cell:.3f} us per cell")
+    print(f"us a step (ros34pw2) at rtol {STEP_COST_RTOL:g} on {', '.join(map(str, STEP_COST_CELLS))} cells: "
+          + ", ".join(f"{c:.1f}" for c in costs) + f"; fitted {fixed:.1f} us + {per_cell:.3f} us per cell")
     print("\nfastest run reaching each accuracy target")
     for target in TARGETS:
-        t_jax = min((t for e, t, _ in jax_runs if e <= target), default=float("nan"))
         t_sp = min((t for e, t, _ in sp_runs if e <= target), default=float("nan"))
-        print(f"target {target:6.0e}: jaxtissue {t_jax * 1e3:7.2f} ms, SciPy {t_sp * 1e3:7.2f} ms, speed-up {t_sp / t_jax:5.1f}x   (goal >= 15x)")
-    print(f"compile time of the jitted forward run: {compile_s:.1f} s   (goal < 15 s)")
+        best = {m: min(((t, r) for e, t, r, _ in jax_runs[m] if e <= target), default=(float("nan"), None)) for m in METHODS}
+        (t_jax, r_jax), method = min((best[m], m) for m in METHODS if best[m][1] is not None)
+        default = best["ros34pw2"][0]
+        print(f"target {target:6.0e}: jaxtissue {t_jax * 1e3:7.2f} ms ({method}, rtol {r_jax:g}), SciPy {t_sp * 1e3:7.2f} ms, "
+              f"speed-up {t_sp / t_jax:5.1f}x   (goal >= 15x; ros34pw2 alone {t_sp / default:5.1f}x)")
+    print("compile time of the jitted forward run: " + ", ".join(f"{m} {s:.1f} s" for m, s in compile_s.items()) + "   (goal < 15 s)")
 
     # ---- gradient at matched accuracy
     g_ref = jax.grad(jax_collagen(1e-10))(p)  # checked against FD in tests/test_gradients.py

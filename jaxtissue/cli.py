@@ -44,6 +44,7 @@ FLAGS = {
     "hold_fraction": "--hold-fraction",
     "max_steps": "--max-steps",
     "rtol": "--rtol",
+    "method": "--method",
     "grid": "--grid",
     "steps_per_cycle": "--steps",
     "t_end_s": "--t-end",
@@ -119,6 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
     _parameter_arguments(s)
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
     s.add_argument("--max-steps", type=_max_steps, default=4096, metavar="N", help=f"step limit of each growth solve (default 4096, at most {MAX_STEPS})")
+    s.add_argument("--method", choices=["ros34pw2", "rodas4p2"], default="ros34pw2",
+                   help="time stepper of the growth solve: ros34pw2 (order 3, any run; the default) or rodas4p2 (order 4, "
+                        "for static runs on 1-D grids: fewer steps at tight --rtol; docs/numerics.md)")
     s.add_argument("--save", choices=["intervals", "end"], default="intervals", help="the series at every coupling interval (default) or only at --t-end")
     _output_arguments(s, required=False)
     s.add_argument("--checkpoint-every", type=_grid_size, default=None, metavar="N",
@@ -286,7 +290,7 @@ def load_params(args):
 
 
 _RUN_KEYS = ("regime", "t_end", "grid", "period", "post_displacement", "hold_fraction", "pins", "lumping", "rtol", "max_steps",
-             "checkpoint_every", "out", "overwrite")
+             "method", "checkpoint_every", "out", "overwrite")
 
 
 def _resumed_run(args):
@@ -300,6 +304,7 @@ def _resumed_run(args):
     if not run_file.exists():
         raise InputError(f"--resume {args.resume}: no interrupted run there ({run_file} missing)")
     saved = json.loads(run_file.read_text())
+    saved.setdefault("method", "ros34pw2")  # a run.json from before --method
     resumed = argparse.Namespace(**{k: saved[k] for k in _RUN_KEYS}, resume=args.resume, progress=args.progress)
     resumed.grid = tuple(resumed.grid) if resumed.grid else None
     return resumed, saved["params"]
@@ -315,7 +320,7 @@ def cmd_simulate(args) -> int:
     from .grid import Grid
     from .params import Params
     from .protocol import Protocol
-    from .simulate import SolverOptions, simulate
+    from .simulate import SolverOptions, method_problem, simulate
 
     if args.checkpoint_every is not None and args.save != "intervals":
         raise InputError("--checkpoint-every saves every interval; drop --save end")
@@ -335,7 +340,8 @@ def cmd_simulate(args) -> int:
     grid = Grid(nx=nx, ny=ny)
     io.check_output_folder(args.out, args.overwrite)
     # a static series interval by interval: a program the cache can keep (as a fitted file's options have it)
-    options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps, static_series="intervals")
+    options = SolverOptions(rtol=args.rtol, atol=args.rtol * 1e-3, max_steps=args.max_steps, static_series="intervals",
+                            method=args.method)
     resolution = {}
     if getattr(args, "params", None) and not args.grid:  # a fitted file: simulate at the resolution of the fit
         from .studies.calibration import fitted_model
@@ -343,12 +349,14 @@ def cmd_simulate(args) -> int:
         fitted = fitted_model(args.params)
         if fitted is not None:
             grid = fitted.grid(args.regime)
-            options = dataclasses.replace(fitted.options(), max_steps=args.max_steps)
+            options = dataclasses.replace(fitted.options(), max_steps=args.max_steps, method=args.method)
             resolution = {"beam": fitted.beam(), "coupling_interval_s": fitted.coupling_interval_s}
             print(f"model resolution from {args.params} [model]: grid {grid.nx} x {grid.ny}, beam {fitted.beam_segments} x "
                   f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
     progress = args.progress if args.progress is not None else \
         _long_run(grid.nx * grid.ny, args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S), args.regime)
+    if (problem := method_problem(options, args.regime, grid, params)) is not None:
+        raise InputError(f"--method {options.method}: {problem}")
     kept = pathlib.Path(f"{args.out}.checkpoint")
     if kept.exists() and not args.resume:
         raise InputError(f"--out {args.out}: an interrupted run is kept in {kept}; continue it with --resume {args.out} or remove that folder")

@@ -70,6 +70,9 @@ class GrowthModel(AbstractStructuredField):
     (motility, chemotaxis): for D_c = χ = 0 known before tracing (`has_cell_transport`),
     where it is identically zero. `o2_sweeps`: the O2 solve of `shifted_factor` in 2-D,
     sweeps of line relaxation or 0 for multigrid (`numerics.line_sweeps`).
+    `exact_jacobian`: J̃ = J (static runs without cell flux on 1-D grids:
+    `growth_jacobian`'s `exact_m`), differentiated with the step: what a Rosenbrock method
+    that is not a W-method needs for its order and its gradients (`numerics.Rodas4P2`).
     """
 
     coeffs: Coefficients
@@ -78,6 +81,7 @@ class GrowthModel(AbstractStructuredField):
     advection: str = eqx.field(static=True, default="limited")
     cell_transport: bool = eqx.field(static=True, default=True)
     o2_sweeps: int = eqx.field(static=True, default=0)
+    exact_jacobian: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.advection not in ("limited", "upwind"):
@@ -118,15 +122,15 @@ class GrowthModel(AbstractStructuredField):
         `linsolve` probes exactly (the limiter's wider stencil would alias)."""
         if self.transport.vx is None or self.advection == "upwind":
             return self
-        return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport, self.o2_sweeps)
+        return GrowthModel(self.coeffs, self.grid, self.transport, "upwind", self.cell_transport, self.o2_sweeps, self.exact_jacobian)
 
     def shifted_factor(self, t, y: State, args, a) -> ShiftedFactor:
         """`a I − J̃` at y, factored (`growth_jacobian`): J̃ is probed from the JVP of
         `for_jacobian()` and held constant under differentiation (a W-method keeps its
-        order for any J̃: no second derivatives)."""
+        order for any J̃: no second derivatives), unless `exact_jacobian`."""
         _, jvp = jax.linearize(lambda z: self.for_jacobian()(t, z, args), y)
-        jac = jax.lax.stop_gradient(GrowthJacobian.probe(jvp, self.grid.shape, pointwise_c=not self.cell_transport))
-        return jac.factor(a, self.o2_sweeps)
+        jac = GrowthJacobian.probe(jvp, self.grid.shape, pointwise_c=not self.cell_transport, exact_m=self.exact_jacobian)
+        return (jac if self.exact_jacobian else jax.lax.stop_gradient(jac)).factor(a, self.o2_sweeps)
 
     def cell_flux_divergence(self, o, c) -> Field:
         """−∇·J_c with J_c = −D_c ∇c + χ c (c_max − c) ∇o and J_c = 0 on every face."""

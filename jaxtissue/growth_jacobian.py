@@ -14,7 +14,11 @@ The growth right-hand side (docs/model.md §2) couples o to its four neighbours
 
 J̃ drops the O2 diffusivity's dependence on m and the neighbour couplings of c (cell
 motility, chemotaxis): weak or, with the paper's D_c = χ = 0, absent. A W-method's
-order does not depend on J̃ being exact.
+order does not depend on J̃ being exact. With `exact_m` the m columns are probed by
+colours too, and m's 5-point coupling into o (D_o(m)) is kept: still eliminated pointwise
+(m and c at a cell depend on o at that cell only), the O2 operator stays 5-point, and
+without a cell flux J̃ = J (the exact Jacobian a Rosenbrock method that is not a
+W-method needs, `numerics.Rodas4P2`).
 """
 
 from __future__ import annotations
@@ -50,12 +54,15 @@ class GrowthJacobian(eqx.Module):
     mo: Field
     mc: Field
     mm: Field
+    om: FivePoint | None = None
+    """∂(do/dt)/∂m on the 5-point stencil (through D_o(m)); None where J̃ drops it."""
 
     @classmethod
-    def probe(cls, jvp, shape, pointwise_c: bool = False) -> "GrowthJacobian":
+    def probe(cls, jvp, shape, pointwise_c: bool = False, exact_m: bool = False) -> "GrowthJacobian":
         """Build J̃ from `jvp(State) -> State` with 2K + 1 JVPs (K colours), or K + 2
         with `pointwise_c` (the caller's promise that c's columns have no entries off
-        the diagonal blocks, as without a cell flux: one JVP finds them exactly)."""
+        the diagonal blocks, as without a cell flux: one JVP finds them exactly);
+        `exact_m`: m's columns by colours too (K − 1 more JVPs), `om` kept."""
         nx, ny = shape
         col = colouring(nx, ny)
         ncol = int(col.max()) + 1
@@ -72,12 +79,18 @@ class GrowthJacobian(eqx.Module):
             r_c = jvp(State(o=zero, c=ones, m=zero))
         else:  # c's columns, one colour each
             r_c = jtu.tree_map(lambda x: _pick(x, col), batched(State(o=zeros, c=masks, m=zeros)))
-        r_m = jvp(State(o=zero, c=zero, m=ones))  # m is pointwise
         nbr = neighbour_colours(col)
-        oo = {
-            name: jnp.where(mask, _pick(r_o.o, colours), 0.0)
-            for name, (colours, mask) in nbr.items()
-        }
+
+        def stencil(responses):  # the 5-point entries of a block probed by colours
+            return {name: jnp.where(mask, _pick(responses, colours), 0.0) for name, (colours, mask) in nbr.items()}
+
+        if exact_m:
+            r_m = batched(State(o=zeros, c=zeros, m=masks))
+            om = FivePoint(_pick(r_m.o, col), **stencil(r_m.o))
+            mm = _pick(r_m.m, col)
+        else:
+            om, mm = None, jvp(State(o=zero, c=zero, m=ones)).m  # m is pointwise
+        oo = stencil(r_o.o)
         return cls(
             oo_diag=_pick(r_o.o, col),
             oo_south=oo["south"],
@@ -89,7 +102,8 @@ class GrowthJacobian(eqx.Module):
             cc=r_c.c,
             mo=_pick(r_o.m, col),
             mc=r_c.m,
-            mm=r_m.m,
+            mm=mm,
+            om=om,
         )
 
     def factor(self, a, sweeps: int = 0, cycles: int = 3) -> "ShiftedFactor":
@@ -99,6 +113,8 @@ class GrowthJacobian(eqx.Module):
         inv_cc = 1.0 / (a - self.cc)
         diag = a - self.oo_diag - self.oc * self.co * inv_cc
         o_op = FivePoint(diag, -self.oo_south, -self.oo_north, -self.oo_west, -self.oo_east)
+        if self.om is not None:  # − om · (m's response to o): m = (r_m + mo o + mc c)/(a − mm)
+            o_op = o_op.minus(self.om.times_diagonal((self.mo + self.mc * inv_cc * self.co) / (a - self.mm)))
         return ShiftedFactor(jac=self, a=a, inv_cc=inv_cc, o_factor=o_op.factor(sweeps, cycles))
 
 
@@ -112,7 +128,10 @@ class ShiftedFactor(eqx.Module):
 
     def solve(self, r):
         j = self.jac
-        o = self.o_factor.solve(r.o + j.oc * self.inv_cc * r.c)
+        r_o = r.o + j.oc * self.inv_cc * r.c
+        if j.om is not None:
+            r_o = r_o + j.om((r.m + j.mc * self.inv_cc * r.c) / (self.a - j.mm))
+        o = self.o_factor.solve(r_o)
         c = self.inv_cc * (r.c + j.co * o)
         m = (r.m + j.mo * o + j.mc * c) / (self.a - j.mm)
         return State(o=o, c=c, m=m)

@@ -23,6 +23,10 @@ from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, int
 from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
 from .state import State
 
+METHODS = ("ros34pw2", "rodas4p2")
+"""`SolverOptions.method`'s values (`numerics.SOLVERS`' keys; named here, where no
+diffrax is imported)."""
+
 
 class SolverOptions(eqx.Module):
     """Tolerances and limits of the growth solve (all static)."""
@@ -55,6 +59,11 @@ class SolverOptions(eqx.Module):
     (half their memory). The solves stay float64; the reverse pass replays from values
     rounded to 6e-8 relative, so the gradient differs from the float64 one at about
     that level (`tests/test_coupling.py`)."""
+    method: str = eqx.field(static=True, default="ros34pw2")
+    """The time stepper (docs/numerics.md, "Time stepping"): "ros34pw2", the Rosenbrock-W
+    method of order 3 (4 stages; of full order for any J̃: every grid), or "rodas4p2",
+    the Rosenbrock method of order 4 (6 stages; needs J̃ close to J, as on 1-D grids:
+    fewer steps at tight tolerances)."""
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""
@@ -82,6 +91,8 @@ class SolverOptions(eqx.Module):
                 raise ValueError(f"solver option {name} = {getattr(self, name)!r} must be True or False")
         if self.store_float32 and not self.nest_intervals:
             raise ValueError("solver option store_float32 = True needs nest_intervals = True")
+        if self.method not in METHODS:
+            raise ValueError(f"solver option method = {self.method!r}; allowed: " + ", ".join(map(repr, METHODS)))
         if self.autodiff not in ("reverse", "forward"):
             raise ValueError(f"solver option autodiff = {self.autodiff!r}; allowed: 'reverse', 'forward'")
         if self.static_series not in ("dense", "intervals"):
@@ -110,6 +121,18 @@ class SolverOptions(eqx.Module):
         return diffrax.StepTo(ts=jnp.concatenate([jnp.zeros(1), frac]))
 
 
+def method_problem(options: SolverOptions, regime: str, grid: Grid, params: Params) -> str | None:
+    """Why `options.method` cannot solve this run, or None: "rodas4p2" needs the exact
+    Jacobian (`GrowthModel.exact_jacobian`), which only a static run on a 1-D grid
+    without cell flux has."""
+    cell_flux = has_cell_transport(params)
+    if options.method != "rodas4p2" or (regime == "static" and grid.nx == 1 and not cell_flux):
+        return None
+    return (f"solver option method = 'rodas4p2' needs a static run on a 1-D grid without cell flux (nx = 1, D_c = chi = 0), "
+            f"where its Jacobian is exact; this is a {regime} run on {grid.nx} x {grid.ny}{' with cell flux' if cell_flux else ''}: "
+            "use 'ros34pw2'")
+
+
 def _growth_code(sol):
     """Integer status code (`result.STATUS_ORDER`) of a growth solve."""
     import diffrax
@@ -119,7 +142,7 @@ def _growth_code(sol):
 
 def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptions, args, progress=False, checkpoints=16,
                  dt0_s=None):
-    """Integrate the growth system over [t0, t1] (diffrax, `ROS34PW2`); `sol.ys` is the
+    """Integrate the growth system over [t0, t1] (diffrax, `options.method`); `sol.ys` is the
     state at `ts` (`ts=None`: at t1 only, no dense output). Observables are taken from
     the saved states afterwards (`result.observe`), outside the solver's loop and its
     checkpointed reverse pass (`checkpoints`, unless `options` sets them). `dt0_s`: the
@@ -131,14 +154,14 @@ def growth_solve(model: GrowthModel, y0: State, t0, t1, ts, options: SolverOptio
     `State` again."""
     import diffrax
 
-    from .numerics import ROS34PW2
+    from .numerics import SOLVERS
 
     span = t1 - t0
     saveat = diffrax.SaveAt(t1=ts is None, ts=None if ts is None else (ts - t0) / span, controller_state=True)
     field = Stacked(model, jtu.tree_structure(y0))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(Rescaled(field, span)),
-        ROS34PW2(),
+        SOLVERS[options.method](),
         t0=0.0,
         t1=1.0,
         dt0=None,  # the controller's (`ReproducibleSteps.dt0`)
@@ -195,7 +218,8 @@ def _simulate(params: Params, protocol: Protocol, grid: Grid, beam_grid: BeamGri
     ts = jnp.asarray(out_times)
     sweeps = options.o2_sweeps or 0
     if protocol.regime == "static":
-        model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport, o2_sweeps=sweeps)
+        model = GrowthModel(coeffs=coeffs, grid=grid, cell_transport=cell_transport, o2_sweeps=sweeps,
+                            exact_jacobian=options.method == "rodas4p2")
         one_solve = not _by_intervals(protocol.regime, options, end_only)
         if one_solve:
             sol = growth_solve(model, y0, times[0], times[-1], None if end_only else ts, options, args, progress)
@@ -428,6 +452,8 @@ def simulate(
     limits.warn_extrapolation(params, protocol, t_end_s)
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
     cell_transport = has_cell_transport(params)  # known before the floats become traced
+    if (problem := method_problem(options, protocol.regime, grid, params)) is not None:
+        raise ValueError(problem)
     if options.o2_sweeps is None:
         options = dataclasses.replace(options, o2_sweeps=default_o2_sweeps(grid, params))
     params, protocol = jtu.tree_map(_float_array, (params, protocol))

@@ -97,6 +97,8 @@ def exit_code(argv):
         (["--grid", "1", "2"], ["NY", "at least 3"]),
         (["--params", "/nonexistent/p.toml"], ["no such parameter file"]),
         (["--regime", "dynamic"], ["--regime", "invalid choice"]),
+        (["--method", "rk4"], ["--method", "invalid choice"]),
+        (["--regime", "flex", "--method", "rodas4p2"], ["method = 'rodas4p2'", "1-D grid", "flex run", "'ros34pw2'"]),
     ],
 )
 def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys, args, words):

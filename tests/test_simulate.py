@@ -115,6 +115,13 @@ def test_a_static_series_by_intervals_goes_on_with_the_step_it_ended_with():
 def test_bad_arguments():
     with pytest.raises(ValueError, match="t_end_s"):
         jt.simulate(jt.paper_parameters(), t_end_s=-1.0)
+    rodas = jt.SolverOptions(method="rodas4p2")  # its Jacobian must be exact: static, 1-D, no cell flux
+    with pytest.raises(ValueError, match="static run on 2 x 8: use 'ros34pw2'"):
+        jt.simulate(jt.paper_parameters(), grid=jt.Grid(nx=2, ny=8), options=rodas)
+    with pytest.raises(ValueError, match="with cell flux"):
+        jt.simulate(jt.paper_parameters(D_c=1e-9), grid=jt.Grid(ny=8), options=rodas)
+    with pytest.raises(ValueError, match="method = 'rk4'; allowed: 'ros34pw2', 'rodas4p2'"):
+        jt.SolverOptions(method="rk4")
     with pytest.raises(ValueError, match="grid ny"):
         jt.Grid(nx=1, ny=1)
     with pytest.raises(ValueError, match="regime"):

@@ -1,8 +1,11 @@
-"""The ROS34PW2 integrator: observed temporal order and agreement with diffrax's Kvaerno5;
-its structured linear algebra against dense solves."""
+"""The Rosenbrock integrators (ROS34PW2, Rodas4P2): their order conditions, observed
+temporal order and agreement with diffrax's Kvaerno5; the structured linear algebra
+against dense solves."""
 
 import diffrax
+import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -11,9 +14,20 @@ from helpers import observed_orders
 import jaxtissue as jt
 from jaxtissue.growth import GrowthModel
 from jaxtissue.growth_jacobian import GrowthJacobian
-from jaxtissue.numerics import ROS34PW2, FivePoint, Rescaled, Stacked, line_sweeps, stack, thomas_factor, thomas_solve
+from jaxtissue.numerics import (
+    ROS34PW2,
+    SOLVERS,
+    AbstractStructuredField,
+    FivePoint,
+    Rescaled,
+    Stacked,
+    line_sweeps,
+    stack,
+    thomas_factor,
+    thomas_solve,
+)
 from jaxtissue.params import nondimensionalise
-from jaxtissue.simulate import default_o2_sweeps
+from jaxtissue.simulate import METHODS, default_o2_sweeps
 from jaxtissue.state import State
 
 GRID = jt.Grid(ny=12)
@@ -28,8 +42,8 @@ def _smooth_start():
     return r.final
 
 
-def _flat(y: State):
-    return jnp.concatenate([y.o.ravel(), y.c.ravel(), y.m.ravel()])
+def _flat(y: State | jax.Array):
+    return jnp.concatenate([y.o.ravel(), y.c.ravel(), y.m.ravel()]) if isinstance(y, State) else y
 
 
 def _solve(solver, y0, controller, dt0=None, field=MODEL, t1=T):
@@ -49,11 +63,81 @@ def test_third_order_in_time():
     assert np.all(orders[1:] > 2.7), (errors, orders)
 
 
-def test_adaptive_solution_matches_kvaerno5():
+@pytest.mark.parametrize("method", METHODS)
+def test_adaptive_solution_matches_kvaerno5(method):
     y0 = State.initial(COEFFS, GRID)
     reference = _solve(diffrax.Kvaerno5(), y0, diffrax.PIDController(rtol=1e-11, atol=1e-14), dt0=1.0)
-    ours = _solve(ROS34PW2(), y0, diffrax.PIDController(rtol=1e-8, atol=1e-11), dt0=1.0)
+    field = MODEL if method == "ros34pw2" else GrowthModel(COEFFS, GRID, cell_transport=False, exact_jacobian=True)  # as `simulate` has it
+    ours = _solve(SOLVERS[method](), y0, diffrax.PIDController(rtol=1e-8, atol=1e-11), dt0=1.0, field=field)
     assert float(jnp.max(jnp.abs(ours - reference))) < 1e-6
+
+
+def _standard_form(method):
+    """(α, Γ, b, b̂) of a method given in the transformed variables (a, c, m, m̂)."""
+    gamma_matrix = np.linalg.inv(np.eye(len(method.m)) / method.gamma - method.c)
+    return method.a @ gamma_matrix, gamma_matrix, method.m @ gamma_matrix, method.m_embedded @ gamma_matrix
+
+
+def _order_defects(alpha, gamma_matrix, b):
+    """Each order's Rosenbrock order conditions, autonomous (Hairer & Wanner IV.7,
+    Table 7.1), as the largest defect: {order: defect} to order 4."""
+    g = gamma_matrix[0, 0]
+    beta = np.tril(alpha + gamma_matrix, -1)
+    a, bb = alpha.sum(1), beta.sum(1)
+    conditions = {
+        1: [b.sum() - 1],
+        2: [b @ bb - (0.5 - g)],
+        3: [b @ a**2 - 1 / 3, b @ beta @ bb - (1 / 6 - g + g * g)],
+        4: [b @ a**3 - 1 / 4, b @ (a * (alpha @ bb)) - (1 / 8 - g / 3), b @ beta @ a**2 - (1 / 12 - g / 3),
+            b @ beta @ beta @ bb - (1 / 24 - g / 2 + 1.5 * g * g - g**3)],
+    }
+    return {order: max(abs(d) for d in defects) for order, defects in conditions.items()}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_tableaus_satisfy_their_order_conditions(method):
+    """Each method's coefficients: order p (its error estimate's one less and not p),
+    one γ on the diagonal, L-stable (R(∞) = 1 − bᵀ(α + Γ)⁻¹1 = 0)."""
+    solver = SOLVERS[method]
+    alpha, gamma_matrix, b, b_hat = _standard_form(solver)
+    p = solver.method_order
+    np.testing.assert_allclose(np.diag(gamma_matrix), solver.gamma, rtol=1e-14)
+    defects, embedded = _order_defects(alpha, gamma_matrix, b), _order_defects(alpha, gamma_matrix, b_hat)
+    assert all(defects[k] < 1e-13 for k in range(1, p + 1)), defects
+    assert all(embedded[k] < 1e-13 for k in range(1, p)) and embedded[p] > 1e-3, embedded
+    ones = np.ones(len(b))
+    assert abs(1 - b @ np.linalg.solve(alpha + gamma_matrix, ones)) < 1e-13
+    assert set(SOLVERS) == set(METHODS)
+
+
+class _DenseField(AbstractStructuredField):
+    """A small nonlinear ODE (a damped oscillator with cubic terms) factoring its exact
+    Jacobian densely: where each method shows its classical order."""
+
+    def __call__(self, t, y, args):
+        return jnp.stack([y[1] + 0.5 * y[0] * (1 - y[0] ** 2), -y[0] - 0.3 * y[1] ** 3])
+
+    def shifted_factor(self, t, y, args, a):
+        return _DenseFactor(a * jnp.eye(y.size) - jax.jacfwd(lambda z: self(t, z, args))(y))
+
+
+class _DenseFactor(eqx.Module):
+    matrix: jax.Array
+
+    def solve(self, r):
+        return jnp.linalg.solve(self.matrix, r)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_each_method_has_its_order_with_an_exact_jacobian(method):
+    y0, t1 = jnp.array([1.0, 0.5]), 4.0
+    reference = _solve(diffrax.Kvaerno5(), y0, diffrax.PIDController(rtol=1e-13, atol=1e-15), dt0=0.01, field=_DenseField(), t1=t1)
+    ns = [32, 64, 128, 256]
+    solve = jax.jit(lambda dt: _solve(SOLVERS[method](), y0, diffrax.ConstantStepSize(), dt, field=_DenseField(), t1=t1))
+    errors = [float(jnp.max(jnp.abs(solve(jnp.asarray(t1 / n)) - reference))) for n in ns]
+    orders = observed_orders([t1 / n for n in ns], errors)
+    p = SOLVERS[method].method_order
+    assert np.all(orders > p - 0.15) and abs(orders[-1] - p) < 0.25, (errors, orders)  # approached from above
 
 
 def test_a_solve_in_unit_time_and_stacked_is_the_same_discrete_map():
@@ -95,19 +179,41 @@ def test_structured_solves_equal_dense_solves():
     np.testing.assert_allclose(batched[1], [np.linalg.solve(np.diag(diag[1, j]) + np.diag(sub[0, j, 1:], -1) + np.diag(sup[0, j, :-1], 1), r[1, j]) for j in range(3)], rtol=1e-12)
     # the growth Jacobian's shifted solve, 1-D (Thomas) and 2-D (multigrid, cycled to
     # convergence), against the dense (a I - J~) of the same probed blocks
-    for shape in ((1, 7), (4, 5)):
+    # (with and without m's 5-point coupling into o, `om`)
+    for shape, with_om in (((1, 7), False), ((4, 5), False), ((1, 7), True), ((4, 5), True)):
         f = lambda k: jnp.asarray(rng.random(shape) * k)  # noqa: E731
-        jac = GrowthJacobian(oo_diag=-2 - f(1), oo_south=f(0.5), oo_north=f(0.5), oo_west=f(0.4) * (shape[0] > 1),
-                             oo_east=f(0.4) * (shape[0] > 1), oc=-f(0.3), co=f(0.2), cc=-f(0.5), mo=f(0.1), mc=f(0.1), mm=-f(0.2))
+        x_on = shape[0] > 1
+        om = FivePoint(-f(0.2), f(0.1), f(0.1), f(0.1) * x_on, f(0.1) * x_on) if with_om else None
+        jac = GrowthJacobian(oo_diag=-2 - f(1), oo_south=f(0.5), oo_north=f(0.5), oo_west=f(0.4) * x_on,
+                             oo_east=f(0.4) * x_on, oc=-f(0.3), co=f(0.2), cc=-f(0.5), mo=f(0.1), mc=f(0.1), mm=-f(0.2), om=om)
         a = jnp.asarray(3.0)
         rhs = State(o=f(1), c=f(1), m=f(1))
         x = jac.factor(a, 0, cycles=40).solve(rhs)
         Z = np.zeros((shape[0] * shape[1],) * 2)
         oo = _dense_five_point(FivePoint(jac.oo_diag, jac.oo_south, jac.oo_north, jac.oo_west, jac.oo_east))
         d = lambda v: np.diag(np.asarray(v).ravel())  # noqa: E731
-        J = np.block([[oo, d(jac.oc), Z], [d(jac.co), d(jac.cc), Z], [d(jac.mo), d(jac.mc), d(jac.mm)]])
+        J = np.block([[oo, d(jac.oc), _dense_five_point(om) if with_om else Z], [d(jac.co), d(jac.cc), Z], [d(jac.mo), d(jac.mc), d(jac.mm)]])
         dense = np.linalg.solve(a * np.eye(J.shape[0]) - J, np.concatenate([np.asarray(v).ravel() for v in (rhs.o, rhs.c, rhs.m)]))
         np.testing.assert_allclose(np.concatenate([np.asarray(v).ravel() for v in (x.o, x.c, x.m)]), dense, rtol=1e-10)
+
+
+def test_an_exact_jacobian_is_the_growth_models_jacobian():
+    """`GrowthModel(exact_jacobian=True)` on a 1-D grid without cell flux (Rodas4P2's
+    runs): the factored a I − J̃ solves with the model's own Jacobian (dense, jacfwd)."""
+    model = GrowthModel(COEFFS, GRID, cell_transport=False, exact_jacobian=True)
+    y0 = State.initial(COEFFS, GRID)
+    rng = np.random.default_rng(3)
+    y = State(o=y0.o * (0.3 + 0.6 * rng.random(y0.o.shape)), c=y0.c * (1 + rng.random(y0.c.shape)), m=jnp.asarray(0.2 * rng.random(y0.m.shape)))
+    _, unflatten = jax.flatten_util.ravel_pytree(y)
+    J = jax.jacfwd(lambda z: jax.flatten_util.ravel_pytree(model(0.0, unflatten(z)))[0])(jax.flatten_util.ravel_pytree(y)[0])
+    assert np.abs(np.asarray(J)[: GRID.ny, -GRID.ny :]).max() > 0  # o depends on m (through D_o): a coupling J̃ keeps
+    a = jnp.asarray(10.0 / float(jnp.abs(J).max()))
+    r = State(o=jnp.asarray(rng.random(y.o.shape)), c=jnp.asarray(rng.random(y.c.shape)), m=jnp.asarray(rng.random(y.m.shape)))
+    x = model.shifted_factor(0.0, y, None, a).solve(r)
+    dense = np.linalg.solve(a * np.eye(J.shape[0]) - np.asarray(J), np.asarray(jax.flatten_util.ravel_pytree(r)[0]))
+    np.testing.assert_allclose(np.asarray(jax.flatten_util.ravel_pytree(x)[0]), dense, rtol=1e-10, atol=1e-12 * np.abs(dense).max())
+    inexact = GrowthModel(COEFFS, GRID, cell_transport=False).shifted_factor(0.0, y, None, a).solve(r)  # J̃ drops D_o(m)
+    assert np.abs(np.asarray(jax.flatten_util.ravel_pytree(inexact)[0]) - dense).max() > 1e-6 * np.abs(dense).max()
 
 
 @pytest.mark.slow  # memory of one step's reverse pass; a 2-D step's: test_a_2d_solve_probes_one_colour_at_a_time

@@ -2,7 +2,7 @@
 vector fields it integrates, rematerialised loops and bounded least squares
 (docs/numerics.md).
 
-The solver (`ROS34PW2`, `ReproducibleSteps`, `quantise`: diffrax) and the least-squares
+The solvers (`ROS34PW2`, `Rodas4P2`, `SOLVERS`, `ReproducibleSteps`, `quantise`: diffrax) and the least-squares
 solver (`LevenbergMarquardt`: optimistix) load on first use, so that a run loaded as a
 saved program (`jaxtissue.cache`) does not import the libraries that trace it."""
 
@@ -26,6 +26,8 @@ from ._structured import (
 
 _ON_FIRST_USE = {
     "ROS34PW2": "_rosenbrock",
+    "Rodas4P2": "_rosenbrock",
+    "SOLVERS": "_rosenbrock",
     "ReproducibleSteps": "_rosenbrock",
     "quantise": "_rosenbrock",
     "LevenbergMarquardt": "_least_squares",

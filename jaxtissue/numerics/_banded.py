@@ -69,6 +69,21 @@ class FivePoint(eqx.Module):
         down = jnp.concatenate([z, u[:, :-1]], axis=1)
         return self.diag * u + self.south * down + self.north * up + self.x_coupling(u)
 
+    def times_diagonal(self, w: Field) -> "FivePoint":
+        """The operator A diag(w): each coupling scaled by w at the cell it reaches."""
+        z, zx = jnp.zeros_like(w[:, :1]), jnp.zeros_like(w[:1])
+        return FivePoint(
+            self.diag * w,
+            self.south * jnp.concatenate([z, w[:, :-1]], axis=1),
+            self.north * jnp.concatenate([w[:, 1:], z], axis=1),
+            self.west * jnp.concatenate([zx, w[:-1]], axis=0),
+            self.east * jnp.concatenate([w[1:], zx], axis=0),
+        )
+
+    def minus(self, other: "FivePoint") -> "FivePoint":
+        """A − B, entry by entry."""
+        return jax.tree_util.tree_map(jnp.subtract, self, other)
+
     def x_coupling(self, u: Field) -> Field:
         """The west/east terms of the operator alone."""
         zx = jnp.zeros_like(u[:1])

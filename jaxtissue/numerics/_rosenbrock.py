@@ -1,14 +1,19 @@
-"""A linearly implicit integrator for vector fields that factor their own Jacobian
-approximation, as a diffrax solver (docs/numerics.md).
+"""Linearly implicit integrators for vector fields that factor their own Jacobian
+approximation, as diffrax solvers (docs/numerics.md).
 
-`ROS34PW2` is the Rosenbrock-W method of Rang & Angermann (2005): 4 stages, order 3
-with an embedded order-2 solution for step control, L-stable and stiffly accurate, and
-— being a W-method — of full order (as h → 0) for any approximation of the Jacobian.
-Its vector field is an `AbstractStructuredField`, which factors `I/(γh) − J̃` once per
+`ROS34PW2` (the default) is the Rosenbrock-W method of Rang & Angermann (2005): 4
+stages, order 3 with an embedded order-2 solution for step control, L-stable and
+stiffly accurate, and — being a W-method — of full order (as h → 0) for any
+approximation of the Jacobian. `Rodas4P2` is the Rosenbrock method of Steinebach (2020):
+6 stages, order 4 with an embedded order-3 solution, L-stable and stiffly accurate,
+built to keep its order on parabolic problems; it is not a W-method, so it needs J̃
+close to J (1-D grids, where J̃ drops only D_o's dependence on m) and pays off at tight
+tolerances (docs/numerics.md, "Time stepping").
+
+Their vector field is an `AbstractStructuredField`, which factors `I/(γh) − J̃` once per
 step for some approximation J̃ of its Jacobian (structured: tridiagonal, line
-relaxation; never dense); all four stages solve with that factor. No nonlinear
-iterations: its cost per step is fixed and reverse-mode differentiation runs straight
-through it.
+relaxation; never dense); all stages solve with that factor. No nonlinear iterations:
+the cost per step is fixed and reverse-mode differentiation runs straight through it.
 
 diffrax supplies everything else: adaptive step control (`PIDController`, its steps
 rounded by `ReproducibleSteps` so that checkpointed gradients retrace them), dense output
@@ -29,9 +34,13 @@ import numpy as np
 from ._structured import AbstractStructuredField
 
 
-# ROS34PW2 in the standard form (α_ij, γ_ij, b_i, b̂_i) ...
-_GAMMA = 4.3586652150845900e-01
-_ALPHA = np.array(
+# Both methods in the transformed variables u_i = Σ_j γ_ij k_j (Hairer & Wanner IV.7),
+# which need no products with J:  (I/(γh) − J̃) u_i = f(y0 + Σ_j a_ij u_j) + Σ_j c_ij u_j / h,
+# y1 = y0 + Σ_i m_i u_i, the embedded solution with m̂_i.
+#
+# ROS34PW2 in the standard form (α_ij, γ_ij, b_i, b̂_i), transformed below:
+_PW2_GAMMA = 4.3586652150845900e-01
+_PW2_ALPHA = np.array(
     [
         [0.0, 0.0, 0.0, 0.0],
         [8.7173304301691801e-01, 0.0, 0.0, 0.0],
@@ -39,25 +48,40 @@ _ALPHA = np.array(
         [0.0, 0.0, 1.0, 0.0],
     ]
 )
-_GAMMA_MATRIX = np.array(
+_PW2_GAMMA_MATRIX = np.array(
     [
-        [_GAMMA, 0.0, 0.0, 0.0],
-        [-8.7173304301691801e-01, _GAMMA, 0.0, 0.0],
-        [-9.0338057013044082e-01, 5.4180672388095326e-02, _GAMMA, 0.0],
-        [2.4212380706095346e-01, -1.2232505839045147e00, 5.4526025533510214e-01, _GAMMA],
+        [_PW2_GAMMA, 0.0, 0.0, 0.0],
+        [-8.7173304301691801e-01, _PW2_GAMMA, 0.0, 0.0],
+        [-9.0338057013044082e-01, 5.4180672388095326e-02, _PW2_GAMMA, 0.0],
+        [2.4212380706095346e-01, -1.2232505839045147e00, 5.4526025533510214e-01, _PW2_GAMMA],
     ]
 )
-_B = np.array([2.4212380706095346e-01, -1.2232505839045147e00, 1.5452602553351020e00, _GAMMA])
-_B_EMBEDDED = np.array(
-    [3.7810903145819369e-01, -9.6042292212423178e-02, 0.5, 2.1793326075422950e-01]
+_PW2_B = np.array([2.4212380706095346e-01, -1.2232505839045147e00, 1.5452602553351020e00, _PW2_GAMMA])
+_PW2_B_EMBEDDED = np.array([3.7810903145819369e-01, -9.6042292212423178e-02, 0.5, 2.1793326075422950e-01])
+_PW2_GINV = np.linalg.inv(_PW2_GAMMA_MATRIX)
+
+# Rodas4P2, given in the transformed variables (a_ij, c_ij); stiffly accurate: y1 is
+# stage 6's argument plus u_6, the embedded solution stage 6's argument (its error u_6).
+_P2_A = np.array(
+    [
+        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [3.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [0.906377755268814, -0.189707390391685, 0.0, 0.0, 0.0, 0.0],
+        [3.758617027739064, 1.161741776019525, -0.849258085312803, 0.0, 0.0, 0.0],
+        [7.089566927282776, 4.573591406461604, -8.423496976860259, -0.959280113459775, 0.0, 0.0],
+        [7.089566927282776, 4.573591406461604, -8.423496976860259, -0.959280113459775, 1.0, 0.0],
+    ]
 )
-# ... and in the transformed variables u_i = Σ_j γ_ij k_j (Hairer & Wanner IV.7),
-# which need no products with J:  (I/(γh) − J) u_i = f(y0 + Σ a_ij u_j) + Σ c_ij u_j / h.
-_GINV = np.linalg.inv(_GAMMA_MATRIX)
-_A_T = _ALPHA @ _GINV
-_C_T = np.diag(np.diag(_GINV)) - _GINV
-_M_T = _B @ _GINV
-_M_EMBEDDED_T = _B_EMBEDDED @ _GINV
+_P2_C = np.array(
+    [
+        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [-12.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [-6.354581592719008, 0.338972550544623, 0.0, 0.0, 0.0, 0.0],
+        [-8.575016317114033, -7.606483992117508, 12.22499765012482, 0.0, 0.0, 0.0],
+        [-5.888975457523102, -8.157396617841821, 24.805546872612922, 12.790401512796979, 0.0, 0.0],
+        [-4.408651676063871, -6.692003137674639, 24.625568527593117, 16.627521966636085, -5.714285714285718, 0.0],
+    ]
+)
 
 
 def _combine(coefs, stacked):
@@ -70,23 +94,29 @@ def _structured_field(terms) -> AbstractStructuredField:
     is_field = lambda x: isinstance(x, AbstractStructuredField)  # noqa: E731
     fields = [x for x in jtu.tree_leaves(terms, is_leaf=is_field) if is_field(x)]
     if len(fields) != 1:
-        raise TypeError("ROS34PW2 needs an ODETerm whose vector field is an AbstractStructuredField")
+        raise TypeError("a Rosenbrock solver needs an ODETerm whose vector field is an AbstractStructuredField")
     return fields[0]
 
 
-class ROS34PW2(diffrax.AbstractAdaptiveSolver):
-    """Rosenbrock-W method with a structured Jacobian (module docstring): the term's
-    vector field is an `AbstractStructuredField`. Use with `diffrax.PIDController`.
-    """
+class _Rosenbrock(diffrax.AbstractAdaptiveSolver):
+    """A linearly implicit method of `stages` stages in the transformed variables
+    (`gamma`, `a`, `c`, `m`, `m_embedded`; module docstring), its term's vector field an
+    `AbstractStructuredField`. Use with `diffrax.PIDController`."""
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar = diffrax.ThirdOrderHermitePolynomialInterpolation
+    gamma: ClassVar[float]
+    a: ClassVar[np.ndarray]
+    c: ClassVar[np.ndarray]
+    m: ClassVar[np.ndarray]
+    m_embedded: ClassVar[np.ndarray]
+    method_order: ClassVar[int]
 
     def order(self, terms):
-        return 3
+        return self.method_order
 
     def error_order(self, terms):
-        return 3
+        return self.method_order  # the embedded solution's local error is O(h^order)
 
     def init(self, terms, t0, t1, y0, args):
         # No state: carrying f(y1) into the next step (first same as last) saves one
@@ -107,37 +137,66 @@ class ROS34PW2(diffrax.AbstractAdaptiveSolver):
         # (prevent_cse=False: the step runs inside loops, where CSE cannot merge the
         # recomputation away; the forward program stays as it was.)
         vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
-        # A W-method keeps its order for any J̃; the field holds J̃ constant under
-        # differentiation, so the gradient differs from that of the discrete map only
-        # at the level of the local error. (f0 is not taken from the linearisation the
-        # field makes for J̃: used as stage 0's right-hand side that gave wrong
-        # checkpointed gradients.)
-        factor = _structured_field(terms).shifted_factor(t0, y0, args, 1.0 / (_GAMMA * h))
+        # The field holds J̃ constant under differentiation, so the gradient differs from
+        # that of the discrete map only at the level of the local error. (f0 is not
+        # taken from the linearisation the field makes for J̃: used as stage 0's
+        # right-hand side that gave wrong checkpointed gradients.)
+        factor = _structured_field(terms).shifted_factor(t0, y0, args, 1.0 / (self.gamma * h))
 
-        a_t, c_t = jnp.asarray(_A_T), jnp.asarray(_C_T)
+        a, c = jnp.asarray(self.a), jnp.asarray(self.c)
+        stages = len(self.m)
 
         def stage(carry, i):
             # stage i: (I/(γh) − J̃) u_i = f(y0 + Σ_j a_ij u_j) + Σ_j c_ij u_j / h, j < i
             us, f0 = carry
-            yi = jtu.tree_map(jnp.add, y0, _combine(a_t[i], us))
-            memory = _combine(c_t[i], us)
+            yi = jtu.tree_map(jnp.add, y0, _combine(a[i], us))
+            memory = _combine(c[i], us)
             fi = vf(yi)
             ui = factor.solve(jtu.tree_map(lambda f, mm: f + mm / h, fi, memory))
             f0 = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), fi, f0)
             return (jtu.tree_map(lambda x, u: x.at[i].set(u), us, ui), f0), None
 
-        # all four stages in one loop (stage 0: y_0 = y0, no memory terms, its f is f0):
+        # all stages in one loop (stage 0: y_0 = y0, no memory terms, its f is f0):
         # one copy of the stage in the program, forward and reverse
         zeros = jtu.tree_map(jnp.zeros_like, y0)
-        (us, f0), _ = jax.lax.scan(stage, (jtu.tree_map(lambda x: jnp.zeros((4,) + x.shape, x.dtype), y0), zeros), jnp.arange(4))
-        increment = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(_M_T), us))
+        us0 = jtu.tree_map(lambda x: jnp.zeros((stages,) + x.shape, x.dtype), y0)
+        (us, f0), _ = jax.lax.scan(stage, (us0, zeros), jnp.arange(stages))
+        increment = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(self.m), us))
         y1 = jtu.tree_map(jnp.add, y0, increment)
-        y_error = jtu.tree_map(lambda a, b: jnp.where(active, a - b, 0.0), increment, _combine(jnp.asarray(_M_EMBEDDED_T), us))
+        y_error = jtu.tree_map(lambda a, b: jnp.where(active, a - b, 0.0), increment, _combine(jnp.asarray(self.m_embedded), us))
         f1 = vf(y1)
         k0 = jtu.tree_map(lambda f: (t1 - t0) * f, f0)
         k1 = jtu.tree_map(lambda f: (t1 - t0) * f, f1)
         dense_info = dict(y0=y0, y1=y1, k0=k0, k1=k1)
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful
+
+
+class ROS34PW2(_Rosenbrock):
+    """Rosenbrock-W method of order 3, 4 stages (module docstring): of full order for any
+    J̃, the default."""
+
+    gamma: ClassVar[float] = _PW2_GAMMA
+    a: ClassVar[np.ndarray] = _PW2_ALPHA @ _PW2_GINV
+    c: ClassVar[np.ndarray] = np.diag(np.diag(_PW2_GINV)) - _PW2_GINV
+    m: ClassVar[np.ndarray] = _PW2_B @ _PW2_GINV
+    m_embedded: ClassVar[np.ndarray] = _PW2_B_EMBEDDED @ _PW2_GINV
+    method_order: ClassVar[int] = 3
+
+
+class Rodas4P2(_Rosenbrock):
+    """Rosenbrock method of order 4, 6 stages (module docstring): for J̃ close to J, at
+    tight tolerances."""
+
+    gamma: ClassVar[float] = 0.25
+    a: ClassVar[np.ndarray] = _P2_A
+    c: ClassVar[np.ndarray] = _P2_C
+    m: ClassVar[np.ndarray] = _P2_A[-1] + np.eye(6)[-1]
+    m_embedded: ClassVar[np.ndarray] = _P2_A[-1]
+    method_order: ClassVar[int] = 4
+
+
+SOLVERS = {"ros34pw2": ROS34PW2, "rodas4p2": Rodas4P2}
+"""The growth solve's methods by `SolverOptions.method`."""
 
 
 def quantise(dt, bits=12):
