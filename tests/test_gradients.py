@@ -127,6 +127,23 @@ def test_adaptive_checkpointed_gradient_matches_central_differences():
     assert abs(float(ad) - float(fd)) < 1e-4 * abs(float(fd)), (float(ad), float(fd))
 
 
+def test_rodas4p2_derivative_matches_central_differences():
+    """The order-4 stepper (`SolverOptions(method="rodas4p2")`, its J̃ differentiated
+    with the step), forward mode: the derivative of 3-week collagen w.r.t. k_m0 against
+    central differences (reverse mode: the slow test below)."""
+    paper = jt.paper_parameters()
+    options = jt.SolverOptions(rtol=1e-8, atol=1e-11, method="rodas4p2", autodiff="forward")
+
+    def collagen(k):
+        return jt.simulate(paper.replace(k_m0=k), t_end_s=jt.THREE_WEEKS_S, grid=jt.Grid(ny=8), options=options, save="end").collagen_mg_per_g[-1]
+
+    value_and_tangent = jax.jit(lambda k: jax.jvp(collagen, (k,), (jnp.ones_like(k),)))
+    k, eps = jnp.asarray(paper.k_m0), 1e-4 * paper.k_m0
+    fd = (float(value_and_tangent(k + eps)[0]) - float(value_and_tangent(k - eps)[0])) / (2 * eps)
+    assert float(value_and_tangent(k)[1]) == pytest.approx(fd, rel=2e-5)
+
+
+@pytest.mark.slow  # reverse mode's compile (~12 s); forward mode: test_rodas4p2_derivative_matches_central_differences
 def test_rodas4p2_gradient_matches_central_differences():
     """The order-4 stepper (`SolverOptions(method="rodas4p2")`, its J̃ differentiated
     with the step): adaptive steps, the checkpointed adjoint, the gradient of 3-week
