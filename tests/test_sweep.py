@@ -221,6 +221,9 @@ def test_resume_refuses_a_different_sweep(static_file, tmp_path):
     ("[parameters]\no_m = { values = [1.5] }\n", "o_m = 1.5 must be in"),
     ("chunks = 3\n[parameters]\nk_m0 = { values = [1e-7] }\n", "unknown key 'chunks'; did you mean 'chunk'?"),
     ("design = \"lhs\"\n[parameters]\nk_m0 = { range = [1e-7, 3e-7] }\n", "samples = None must be an integer in [1, 10000000]"),
+    ("[parameters]\nk_m0 = { values = [1e-7] }\n[model]\nmethod = \"rk4\"\n", "[model] solver option method = 'rk4'; allowed"),
+    ("regime = \"flex\"\n[parameters]\nk_m0 = { values = [1e-7] }\n[model]\nmethod = \"rodas4p2\"\n", "this is a flex run on 50 x 40"),
+    ("[parameters]\nD_c = { values = [1e-9] }\n[model]\nmethod = \"rodas4p2\"\n", "on 1 x 40 with cell flux"),
 ])
 def test_bad_sweep_files_give_one_line_and_exit_2(tmp_path, capsys, text, message):
     path = tmp_path / "bad.toml"
@@ -228,6 +231,24 @@ def test_bad_sweep_files_give_one_line_and_exit_2(tmp_path, capsys, text, messag
     assert main(["sweep", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_a_sweep_steps_with_the_method_its_model_names(tmp_path):
+    """`[model] method = "rodas4p2"`: the sets are solved with it (fewer steps, the same
+    values to the tolerance) and equal its single runs."""
+    path = tmp_path / "r.toml"
+    path.write_text(STATIC.replace("n = 3", "n = 1").replace("n = 4", "n = 2").replace("ny = 20", 'ny = 8\nmethod = "rodas4p2"'))
+    sweep = sw.read_sweep(path)
+    assert sweep.method == "rodas4p2"
+    ds = sw.run(sweep, tmp_path / "out")
+    values = np.array([ds.k_c_max.values[0], ds.k_m0.values[1]])
+    params, protocol = sweep.model(values)
+    options = jt.SolverOptions(rtol=sweep.rtol, atol=sweep.rtol * 1e-3)
+    ours = jt.simulate(params, protocol, sweep.t_end_s, sweep.grid, options=dataclasses.replace(options, method="rodas4p2"), save="end")
+    default = jt.simulate(params, protocol, sweep.t_end_s, sweep.grid, options=options, save="end")
+    assert float(ds["collagen_mg_per_g"][0, 1]) == pytest.approx(float(ours.collagen_mg_per_g[-1]), rel=1e-9)
+    assert float(ours.collagen_mg_per_g[-1]) == pytest.approx(float(default.collagen_mg_per_g[-1]), rel=1e-4)
+    assert int(ours.num_steps) < int(default.num_steps)
 
 
 def test_failed_parameter_sets_are_marked_not_fatal(tmp_path):

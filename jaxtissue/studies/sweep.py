@@ -31,7 +31,7 @@ from ..io import InputError, atomic_write, atomic_write_text, number, params_fro
 from ..params import FIELDS, Params, suggest
 from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
 from ..result import OUTPUTS, SCALARS
-from ..simulate import SolverOptions, simulate
+from ..simulate import SolverOptions, method_problem, simulate
 from ._problem_files import grid_axis, space_filling
 
 
@@ -50,6 +50,7 @@ class Sweep:
     coupling_interval_s: float = COUPLING_INTERVAL_S
     rtol: float = 1e-5
     max_steps: int = 4096  # per growth solve; a set that needs more is marked failed
+    method: str = "ros34pw2"  # the time stepper (SolverOptions.method)
     source: str = ""  # the sweep file's text (a resumed sweep must match it)
 
     def __post_init__(self):
@@ -72,7 +73,7 @@ class Sweep:
     def run_one(self, values) -> dict:
         params, protocol = self.model(values)
         r = simulate(params, protocol, self.t_end_s, self.grid, coupling_interval_s=self.coupling_interval_s,
-                     beam=self.beam, options=SolverOptions(rtol=self.rtol, atol=self.rtol * 1e-3, max_steps=self.max_steps),
+                     beam=self.beam, options=SolverOptions(rtol=self.rtol, atol=self.rtol * 1e-3, max_steps=self.max_steps, method=self.method),
                      save="end" if self.outputs == "final" else "intervals")
         pick = (lambda v: v[-1]) if self.outputs == "final" else (lambda v: v)
         out = {k: pick(getattr(r, k)) for k in SCALARS}
@@ -168,7 +169,7 @@ def read_sweep(path) -> Sweep:
             _check_value(name, value, f"{where}: [parameters]")
 
     model = doc.get("model", {})
-    allowed = {"nx", "ny", "beam_segments", "beam_steps_per_cycle", "coupling_interval_s", "rtol", "max_steps"}
+    allowed = {"nx", "ny", "beam_segments", "beam_steps_per_cycle", "coupling_interval_s", "rtol", "max_steps", "method"}
     for key in model:
         if key not in allowed:
             raise InputError(f"{where}: unknown key {key!r} in [model]; {suggest(key, sorted(allowed))}")
@@ -186,7 +187,15 @@ def read_sweep(path) -> Sweep:
     max_steps = model.get("max_steps", 4096)
     if interval <= 0 or not 0 < rtol < 1 or isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
         raise InputError(f"{where}: [model] needs coupling_interval_s > 0, rtol in (0, 1), max_steps a positive integer")
-    return Sweep(names, points, axes, protocol, base, t_end, outputs, chunk, grid, beam, interval, rtol, max_steps, text)
+    method = model.get("method", "ros34pw2")
+    try:
+        options = SolverOptions(method=method)
+    except ValueError as err:
+        raise InputError(f"{where}: [model] {err}") from None
+    cell_flux = base.replace(D_c=1.0) if {"D_c", "chi"} & set(names) else base  # swept: nonzero somewhere
+    if (problem := method_problem(options, regime, grid or Grid.default(regime), cell_flux)) is not None:
+        raise InputError(f"{where}: [model] {problem}")
+    return Sweep(names, points, axes, protocol, base, t_end, outputs, chunk, grid, beam, interval, rtol, max_steps, method, text)
 
 
 # ---------------------------------------------------------------------------------------
