@@ -21,6 +21,7 @@ rescanning the imported libraries while JAX traces.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import os
 import pathlib
@@ -153,7 +154,10 @@ MAX_EXECUTABLES = 64
 
 _FORMAT = 3
 _SUFFIX = ".jtx"
-_folder: pathlib.Path | None = None
+_folder: contextvars.ContextVar[pathlib.Path | None] = contextvars.ContextVar("jaxtissue_saved_programs", default=None)
+"""`saved_executables`' folder, per thread (a new thread starts without one unless run
+in a copy of its starter's context): tasks in several threads of one process, as in a
+Dask worker, each keep their own."""
 _loaded: dict = {}  # key -> _Entry, this process's programs
 
 
@@ -166,25 +170,24 @@ _OUT = _Out()
 
 @contextlib.contextmanager
 def saved_executables(folder: str | os.PathLike | None):
-    """Within the block, `call` keeps the compiled programs it runs as files in `folder`
-    (None, or `JAXTISSUE_NO_SAVED_PROGRAMS` set to anything but "" or "0": off), and a
-    later process loads them instead of tracing, lowering and compiling again
-    (docs/numerics.md, "Compilation"). The command line's runs use
+    """Within the block, in this thread, `call` keeps the compiled programs it runs as
+    files in `folder` (None, or `JAXTISSUE_NO_SAVED_PROGRAMS` set to anything but "" or
+    "0": off), and a later process loads them instead of tracing, lowering and compiling
+    again (docs/numerics.md, "Compilation"). The command line's runs use
     `<cache folder>/executables`."""
-    global _folder
     if os.environ.get("JAXTISSUE_NO_SAVED_PROGRAMS", "") not in ("", "0"):
         folder = None
-    previous, _folder = _folder, None if folder is None else pathlib.Path(folder)
+    token = _folder.set(None if folder is None else pathlib.Path(folder))
     try:
         yield
     finally:
-        _folder = previous
+        _folder.reset(token)
 
 
 def saved_folder() -> pathlib.Path | None:
     """The folder that `saved_executables` keeps programs in here and now (None: off):
     what a sweep's Dask workers are given to keep theirs in (`sweep_dask.run`)."""
-    return _folder
+    return _folder.get()
 
 
 def call(jitted, *args):
@@ -215,7 +218,7 @@ def prepared(jitted, *args):
 def _program(jitted, args):
     """(`_Entry`, the arrays of `args`) of `call`'s saved or newly compiled program, or
     None where none is saved (off, traced arguments, no key)."""
-    folder, fn = _folder, getattr(jitted, "__wrapped__", None)
+    folder, fn = _folder.get(), getattr(jitted, "__wrapped__", None)
     if folder is None or fn is None:  # off, or not a jitted function
         return None
     dynamic, static = eqx.partition(args, eqx.is_array)

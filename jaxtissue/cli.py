@@ -18,6 +18,7 @@ one line and exit code 1. Output folders appear complete or not at all.
 from __future__ import annotations
 
 import argparse
+import contextvars
 import dataclasses
 import math
 import os
@@ -842,7 +843,8 @@ def _interruptible(run, args) -> int:
         raise _Terminated
 
     previous = signal.signal(signal.SIGTERM, terminate)
-    worker = threading.Thread(target=work, name=f"jaxtissue {args.command}", daemon=True)
+    # in a copy of this thread's context: the command's `saved_executables` folder with it
+    worker = threading.Thread(target=contextvars.copy_context().run, args=(work,), name=f"jaxtissue {args.command}", daemon=True)
     try:
         worker.start()
         while worker.is_alive():

@@ -191,6 +191,38 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
     assert len(_saved(tmp_path)) == 3
 
 
+def test_threads_keep_their_own_folder_of_saved_programs(tmp_path, monkeypatch):
+    """Tasks in threads of one process (a Dask worker's) each in their own
+    `saved_executables` block, the blocks interleaved: each thread's programs go to its
+    folder, and one thread's block ending does not turn off another's."""
+    import threading
+
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    x, entered, ended = jnp.arange(3.0), threading.Barrier(2), threading.Barrier(2)
+    seen = {}
+
+    def task(name, scale, leaves_first):
+        with saved_executables(tmp_path / name):
+            entered.wait()
+            if leaves_first:
+                seen[name] = cache.saved_folder()
+        if leaves_first:
+            ended.wait()
+        else:
+            with saved_executables(tmp_path / name):
+                ended.wait()  # the other thread's block has ended
+                seen[name] = cache.saved_folder()
+                cache.call(_affine, x, scale, name)
+
+    threads = [threading.Thread(target=task, args=("a", 5.0, True)), threading.Thread(target=task, args=("b", 6.0, False))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert seen == {"a": tmp_path / "a", "b": tmp_path / "b"}
+    assert len(_saved(tmp_path / "b")) == 1 and cache.saved_folder() is None
+
+
 def test_a_corrupt_or_unwritable_saved_executable_costs_a_warning(tmp_path, monkeypatch):
     monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
     x = jnp.arange(3.0)
