@@ -112,6 +112,28 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys, args, words):
     assert not out.exists()
 
 
+def test_method_flag_chooses_the_solvers_method(tmp_path, monkeypatch):
+    """`simulate --method` reaches the run's `SolverOptions` (the run itself stopped
+    before it compiles; the stepper's own tests: tests/test_solver.py)."""
+    import sys
+
+    from jaxtissue.io import InputError
+    from jaxtissue.numerics import SOLVERS
+    from jaxtissue.simulate import METHODS
+
+    chosen = []
+
+    def stop(*args, options, **kwargs):
+        chosen.append(options.method)
+        raise InputError("stopped before the run")
+
+    monkeypatch.setattr(sys.modules["jaxtissue.simulate"], "simulate", stop)
+    for method in (None, "rodas4p2"):
+        assert main(["simulate", "--out", str(tmp_path / "o")] + (["--method", method] if method else [])) == 2
+    assert chosen == ["ros34pw2", "rodas4p2"] and set(METHODS) == set(SOLVERS)
+    assert not (tmp_path / "o").exists()
+
+
 def test_malformed_and_unknown_params_files(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("k_a = = 3\n")
