@@ -60,10 +60,10 @@ class SolverOptions(eqx.Module):
     rounded to 6e-8 relative, so the gradient differs from the float64 one at about
     that level (`tests/test_coupling.py`)."""
     method: str = eqx.field(static=True, default="ros34pw2")
-    """The time stepper (docs/numerics.md, "Time stepping"): "ros34pw2", the Rosenbrock-W
-    method of order 3 (4 stages; of full order for any J̃: every grid), or "rodas4p2",
-    the Rosenbrock method of order 4 (6 stages; needs J̃ close to J, as on 1-D grids:
-    fewer steps at tight tolerances)."""
+    """The time stepper (docs/numerics.md, "Time"): "ros34pw2", the Rosenbrock-W method
+    of order 3 (4 stages; of full order for any J̃: every run), or "rodas4p2", the
+    Rosenbrock method of order 4 (6 stages, with the exact Jacobian: static runs on 1-D
+    grids without cell flux only; fewer steps at tight tolerances)."""
     autodiff: str = eqx.field(static=True, default="reverse")
     """"reverse" (`jax.grad`; checkpointed) or "forward" (`jax.jvp`/`jacfwd`, e.g. for
     Jacobians of a few parameters in least-squares fits)."""

@@ -6,9 +6,9 @@ stages, order 3 with an embedded order-2 solution for step control, L-stable and
 stiffly accurate, and — being a W-method — of full order (as h → 0) for any
 approximation of the Jacobian. `Rodas4P2` is the Rosenbrock method of Steinebach (2020):
 6 stages, order 4 with an embedded order-3 solution, L-stable and stiffly accurate,
-built to keep its order on parabolic problems; it is not a W-method, so it needs J̃
-close to J (1-D grids, where J̃ drops only D_o's dependence on m) and pays off at tight
-tolerances (docs/numerics.md, "Time stepping").
+built to keep its order on parabolic problems; it is not a W-method, so it needs the
+exact Jacobian (its order and error estimate collapse with an approximate one) and pays
+off at tight tolerances (docs/numerics.md, "An order-4 stepper for static 1-D runs").
 
 Their vector field is an `AbstractStructuredField`, which factors `I/(γh) − J̃` once per
 step for some approximation J̃ of its Jacobian (structured: tridiagonal, line
@@ -184,8 +184,8 @@ class ROS34PW2(_Rosenbrock):
 
 
 class Rodas4P2(_Rosenbrock):
-    """Rosenbrock method of order 4, 6 stages (module docstring): for J̃ close to J, at
-    tight tolerances."""
+    """Rosenbrock method of order 4, 6 stages (module docstring): for a field whose J̃ is
+    its exact Jacobian, at tight tolerances."""
 
     gamma: ClassVar[float] = 0.25
     a: ClassVar[np.ndarray] = _P2_A
