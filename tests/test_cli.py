@@ -132,6 +132,10 @@ def test_method_flag_chooses_the_solvers_method(tmp_path, monkeypatch):
         assert main(["simulate", "--out", str(tmp_path / "o")] + (["--method", method] if method else [])) == 2
     assert chosen == ["ros34pw2", "rodas4p2"] and set(METHODS) == set(SOLVERS)
     assert not (tmp_path / "o").exists()
+    from jaxtissue.cli import build_parser
+
+    simulate = next(a for a in build_parser()._subparsers._group_actions[0].choices["simulate"]._actions if a.dest == "method")
+    assert tuple(simulate.choices) == METHODS  # the flag offers every method
 
 
 def test_malformed_and_unknown_params_files(tmp_path, capsys):
