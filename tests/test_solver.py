@@ -145,6 +145,28 @@ def test_each_method_has_its_order_with_an_exact_jacobian(method):
     assert np.all(orders > p - 0.15) and abs(orders[-1] - p) < 0.25, (errors, orders)  # approached from above
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_each_methods_dense_output_converges(method):
+    """Values inside steps (`SaveAt(ts=...)`): ROS34PW2's cubic Hermite interpolant and
+    Rodas4P2's own from its stages, on the ODE above, converge at third order or better
+    (local error O(h⁴) of an order-3 interpolant)."""
+    y0, t1 = jnp.array([1.0, 0.5]), 4.0
+    ts = t1 * jnp.array([0.3, 0.55, 0.8])  # inside steps for every n below
+
+    def solve(solver, controller, dt0):
+        return diffrax.diffeqsolve(diffrax.ODETerm(_DenseField()), solver, 0.0, t1, dt0, y0, stepsize_controller=controller,
+                                   saveat=diffrax.SaveAt(ts=ts), max_steps=100000).ys
+
+    reference = solve(diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-13, atol=1e-15), 0.01)
+    ns = [16, 32, 64, 128, 256]
+    run = jax.jit(lambda dt: solve(SOLVERS[method](), diffrax.ConstantStepSize(), dt))
+    errors = [float(jnp.max(jnp.abs(run(jnp.asarray(t1 / n)) - reference))) for n in ns]
+    # a line through log error against log step: the points' θ within their steps
+    # change with n, and with them the interpolant's error constant
+    order = np.polyfit(np.log(t1 / np.asarray(ns)), np.log(errors), 1)[0]
+    assert order > 2.8 and np.all(np.diff(errors) < 0), (errors, order)
+
+
 def test_a_solve_in_unit_time_and_stacked_is_the_same_discrete_map():
     """What `growth_solve` integrates: `Rescaled` (n steps of 1/n in s = t/T take the
     steps of T/n in t) of `Stacked` (o, c, m stacked in one array), to round-off."""

@@ -17,7 +17,8 @@ the cost per step is fixed and reverse-mode differentiation runs straight throug
 
 diffrax supplies everything else: adaptive step control (`PIDController`, its steps
 rounded by `ReproducibleSteps` so that checkpointed gradients retrace them), dense output
-(cubic Hermite), saving, progress meters and checkpointed adjoints. The vector field
+(cubic Hermite for ROS34PW2, Rodas4P2's own from its stages), saving, progress meters
+and checkpointed adjoints. The vector field
 must be autonomous (true of the growth model over one growth interval).
 """
 
@@ -30,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jaxtyping import PyTree
 
 from ._structured import AbstractStructuredField
 
@@ -82,6 +84,14 @@ _P2_C = np.array(
         [-4.408651676063871, -6.692003137674639, 24.625568527593117, 16.627521966636085, -5.714285714285718, 0.0],
     ]
 )
+# its dense output (order 3) from the stages: y(θ) = (1 − θ) y0 + θ (y1 + (1 − θ)(d1 + θ d2)),
+# d_k = Σ_j h_kj u_j
+_P2_DENSE = np.array(
+    [
+        [-5.323528268423303, -10.042123754867493, 17.175254928256965, -5.079931171878093, -0.016185991706112, 0.0],
+        [6.984505741529879, 6.914061169603662, -0.849178943070653, 18.104410789349338, -3.516963011559032, 0.0],
+    ]
+)
 
 
 def _combine(coefs, stacked):
@@ -98,10 +108,31 @@ def _structured_field(terms) -> AbstractStructuredField:
     return fields[0]
 
 
+class _StageInterpolation(diffrax.AbstractLocalInterpolation):
+    """A Rodas method's own dense output over a step [t0, t1]: y(θ) = (1 − θ) y0 +
+    θ (y1 + (1 − θ)(d[0] + θ d[1])), θ = (t − t0)/(t1 − t0), d from the stages."""
+
+    t0: jax.Array
+    t1: jax.Array
+    y0: PyTree
+    y1: PyTree
+    d: PyTree  # leaves with a leading axis of 2
+
+    def evaluate(self, t0, t1=None, left=True):
+        del left
+        if t1 is not None:
+            return jtu.tree_map(jnp.subtract, self.evaluate(t1), self.evaluate(t0))
+        span = self.t1 - self.t0
+        theta = jnp.where(span > 0, (t0 - self.t0) / jnp.where(span > 0, span, 1.0), 0.0)
+        return jtu.tree_map(lambda y0, y1, d: (1 - theta) * y0 + theta * (y1 + (1 - theta) * (d[0] + theta * d[1])),
+                            self.y0, self.y1, self.d)
+
+
 class _Rosenbrock(diffrax.AbstractAdaptiveSolver):
     """A linearly implicit method of `stages` stages in the transformed variables
     (`gamma`, `a`, `c`, `m`, `m_embedded`; module docstring), its term's vector field an
-    `AbstractStructuredField`. Use with `diffrax.PIDController`."""
+    `AbstractStructuredField`; dense output by cubic Hermite interpolation, or, with
+    `dense` (rows h_k), by `_StageInterpolation`. Use with `diffrax.PIDController`."""
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar = diffrax.ThirdOrderHermitePolynomialInterpolation
@@ -111,6 +142,7 @@ class _Rosenbrock(diffrax.AbstractAdaptiveSolver):
     m: ClassVar[np.ndarray]
     m_embedded: ClassVar[np.ndarray]
     method_order: ClassVar[int]
+    dense: ClassVar[np.ndarray | None] = None
 
     def order(self, terms):
         return self.method_order
@@ -164,10 +196,13 @@ class _Rosenbrock(diffrax.AbstractAdaptiveSolver):
         increment = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(self.m), us))
         y1 = jtu.tree_map(jnp.add, y0, increment)
         y_error = jtu.tree_map(lambda a, b: jnp.where(active, a - b, 0.0), increment, _combine(jnp.asarray(self.m_embedded), us))
-        f1 = vf(y1)
-        k0 = jtu.tree_map(lambda f: (t1 - t0) * f, f0)
-        k1 = jtu.tree_map(lambda f: (t1 - t0) * f, f1)
-        dense_info = dict(y0=y0, y1=y1, k0=k0, k1=k1)
+        if self.dense is None:  # cubic Hermite: f at both ends (one more right-hand side)
+            k0 = jtu.tree_map(lambda f: (t1 - t0) * f, f0)
+            k1 = jtu.tree_map(lambda f: (t1 - t0) * f, vf(y1))
+            dense_info = dict(y0=y0, y1=y1, k0=k0, k1=k1)
+        else:  # from the stages (`_StageInterpolation`)
+            d = jtu.tree_map(lambda x: jnp.where(active, x, 0.0), _combine(jnp.asarray(self.dense), us))
+            dense_info = dict(y0=y0, y1=y1, d=d)
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful
 
 
@@ -193,6 +228,8 @@ class Rodas4P2(_Rosenbrock):
     m: ClassVar[np.ndarray] = _P2_A[-1] + np.eye(6)[-1]
     m_embedded: ClassVar[np.ndarray] = _P2_A[-1]
     method_order: ClassVar[int] = 4
+    dense: ClassVar[np.ndarray] = _P2_DENSE
+    interpolation_cls: ClassVar = _StageInterpolation
 
 
 SOLVERS = {"ros34pw2": ROS34PW2, "rodas4p2": Rodas4P2}
