@@ -158,7 +158,7 @@ def test_each_methods_dense_output_converges(method):
                                    saveat=diffrax.SaveAt(ts=ts), max_steps=100000).ys
 
     reference = solve(diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-13, atol=1e-15), 0.01)
-    ns = [16, 32, 64, 128, 256]
+    ns = [16, 32, 64, 128]
     run = jax.jit(lambda dt: solve(SOLVERS[method](), diffrax.ConstantStepSize(), dt))
     errors = [float(jnp.max(jnp.abs(run(jnp.asarray(t1 / n)) - reference))) for n in ns]
     # a line through log error against log step: the points' θ within their steps
