@@ -390,7 +390,8 @@ def cmd_simulate(args) -> int:
 
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_netcdf(result.contents(), tmp / "result.nc")
-        io.write_json(tmp / "summary.json", summary(result, args.regime) | {"warnings": notes} |
+        solver = {"method": options.method, "rtol": options.rtol, "atol": options.atol}
+        io.write_json(tmp / "summary.json", summary(result, args.regime) | {"solver": solver, "warnings": notes} |
                       ({"lumping": {"rule": protocol.lumping, "C": params.lumping_C, "why": lumping_note}} if lumping_note else {}))
         io.write_params_toml(params, tmp / "params.toml", notes=(lumping_note,) if lumping_note else ())
         plots.profiles(result, tmp / "profiles.png", title=f"{args.regime} culture")

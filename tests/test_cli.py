@@ -42,6 +42,7 @@ def test_simulate_writes_every_file(static_run):
         assert key in summary
     assert jt.THREE_WEEKS_S in summary["times_s"]
     assert summary["params"]["k_m0"] == 2e-7
+    assert summary["solver"] == {"method": "ros34pw2", "rtol": 1e-5, "atol": 1e-8}
     ds = xr.open_dataset(static_run / "result.nc", engine="h5netcdf")
     assert ds["E_eff_kPa"].attrs["units"] == "kPa"
     assert float(ds["collagen_mg_per_g"][-1]) == pytest.approx(summary["collagen_mg_per_g"][-1])
