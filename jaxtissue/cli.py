@@ -321,6 +321,7 @@ def cmd_simulate(args) -> int:
     from .grid import Grid
     from .params import Params
     from .protocol import Protocol
+    from .growth import has_cell_transport
     from .simulate import SolverOptions, method_problem, simulate
 
     if args.checkpoint_every is not None and args.save != "intervals":
@@ -356,7 +357,7 @@ def cmd_simulate(args) -> int:
                   f"{fitted.beam_steps_per_cycle}, T_g = {fitted.coupling_interval_s:g} s, rtol = {fitted.rtol:g} (--grid overrides)")
     progress = args.progress if args.progress is not None else \
         _long_run(grid.nx * grid.ny, args.t_end, resolution.get("coupling_interval_s", COUPLING_INTERVAL_S), args.regime)
-    if (problem := method_problem(options, args.regime, grid, params)) is not None:
+    if (problem := method_problem(options, args.regime, grid, has_cell_transport(params))) is not None:
         raise InputError(f"--method {options.method}: {problem}")
     kept = pathlib.Path(f"{args.out}.checkpoint")
     if kept.exists() and not args.resume:

@@ -121,11 +121,10 @@ class SolverOptions(eqx.Module):
         return diffrax.StepTo(ts=jnp.concatenate([jnp.zeros(1), frac]))
 
 
-def method_problem(options: SolverOptions, regime: str, grid: Grid, params: Params) -> str | None:
+def method_problem(options: SolverOptions, regime: str, grid: Grid, cell_flux: bool) -> str | None:
     """Why `options.method` cannot solve this run, or None: "rodas4p2" needs the exact
     Jacobian (`GrowthModel.exact_jacobian`), which only a static run on a 1-D grid
-    without cell flux has."""
-    cell_flux = has_cell_transport(params)
+    without cell flux (`cell_flux`: `has_cell_transport` of its parameters) has."""
     if options.method != "rodas4p2" or (regime == "static" and grid.nx == 1 and not cell_flux):
         return None
     return (f"solver option method = 'rodas4p2' needs a static run on a 1-D grid without cell flux (nx = 1, D_c = chi = 0), "
@@ -452,7 +451,7 @@ def simulate(
     limits.warn_extrapolation(params, protocol, t_end_s)
     times = tuple(save_times(float(t_end_s), float(coupling_interval_s), float(t_start_s)).tolist())
     cell_transport = has_cell_transport(params)  # known before the floats become traced
-    if (problem := method_problem(options, protocol.regime, grid, params)) is not None:
+    if (problem := method_problem(options, protocol.regime, grid, cell_transport)) is not None:
         raise ValueError(problem)
     if options.o2_sweeps is None:
         options = dataclasses.replace(options, o2_sweeps=default_o2_sweeps(grid, params))

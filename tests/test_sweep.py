@@ -233,13 +233,13 @@ def test_bad_sweep_files_give_one_line_and_exit_2(tmp_path, capsys, text, messag
     assert message in err and err.count("\n") == 1
 
 
-def test_a_sweep_steps_with_the_method_its_model_names(tmp_path, monkeypatch):
+def test_a_sweep_steps_with_the_method_its_model_names(static_file, tmp_path, monkeypatch):
     """`[model] method = "rodas4p2"` reaches every set's `SolverOptions` (the runs
     themselves stopped before they compile; the stepper's own tests: tests/test_solver.py)."""
     path = tmp_path / "r.toml"
     path.write_text(STATIC.replace("ny = 20", 'ny = 8\nmethod = "rodas4p2"'))
     sweep = sw.read_sweep(path)
-    assert sweep.method == "rodas4p2" and sw.read_sweep(_written(tmp_path, STATIC)).method == "ros34pw2"
+    assert sweep.method == "rodas4p2" and sw.read_sweep(static_file).method == "ros34pw2"
 
     def stop(*args, options, **kwargs):
         raise RuntimeError(f"stopped: {options.method}")
@@ -247,12 +247,6 @@ def test_a_sweep_steps_with_the_method_its_model_names(tmp_path, monkeypatch):
     monkeypatch.setattr(sw, "simulate", stop)
     with pytest.raises(RuntimeError, match="stopped: rodas4p2"):
         sweep.run_one(sweep.points[0])
-
-
-def _written(tmp_path, text):
-    path = tmp_path / "default.toml"
-    path.write_text(text)
-    return path
 
 
 def test_failed_parameter_sets_are_marked_not_fatal(tmp_path):

@@ -169,8 +169,9 @@ class _Rosenbrock(diffrax.AbstractAdaptiveSolver):
         # (prevent_cse=False: the step runs inside loops, where CSE cannot merge the
         # recomputation away; the forward program stays as it was.)
         vf = jax.checkpoint(lambda y: terms.vf(t0, y, args), prevent_cse=False)
-        # The field holds J̃ constant under differentiation, so the gradient differs from
-        # that of the discrete map only at the level of the local error. (f0 is not
+        # The field holds J̃ constant under differentiation (a W-method's: the gradient
+        # then differs from that of the discrete map only at the level of the local
+        # error) or, where J̃ is exact, differentiates it with the step. (f0 is not
         # taken from the linearisation the field makes for J̃: used as stage 0's
         # right-hand side that gave wrong checkpointed gradients.)
         factor = _structured_field(terms).shifted_factor(t0, y0, args, 1.0 / (self.gamma * h))

@@ -27,6 +27,7 @@ from .. import cache, limits
 from ..beam import BeamGrid
 from ..cache import add_xla_flag
 from ..grid import Grid
+from ..growth import has_cell_transport
 from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
 from ..params import FIELDS, Params, suggest
 from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
@@ -192,7 +193,7 @@ def read_sweep(path) -> Sweep:
         options = SolverOptions(method=method)
     except ValueError as err:
         raise InputError(f"{where}: [model] {err}") from None
-    cell_flux = base.replace(D_c=1.0) if {"D_c", "chi"} & set(names) else base  # swept: nonzero somewhere
+    cell_flux = has_cell_transport(base) or bool({"D_c", "chi"} & set(names))  # swept: nonzero somewhere
     if (problem := method_problem(options, regime, grid or Grid.default(regime), cell_flux)) is not None:
         raise InputError(f"{where}: [model] {problem}")
     return Sweep(names, points, axes, protocol, base, t_end, outputs, chunk, grid, beam, interval, rtol, max_steps, method, text)
