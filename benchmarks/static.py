@@ -43,6 +43,7 @@ import scipy_reference  # noqa: E402
 
 import jaxtissue as jt  # noqa: E402
 from jaxtissue.protocol import save_times  # noqa: E402
+from jaxtissue.simulate import METHODS  # noqa: E402  (the time steppers)
 
 collect_less()  # Python's cycle collector as the command line sets it, after the imports
 
@@ -75,9 +76,6 @@ def same_equations(p):
     with those parameters) instead of computing a zero flux from traced ones."""
     base = jt.paper_parameters()
     return p.replace(D_c=base.D_c, chi=base.chi)
-
-
-METHODS = ("ros34pw2", "rodas4p2")
 
 
 def jax_forward(rtol, ny=NY, method="ros34pw2"):
