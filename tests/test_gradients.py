@@ -147,7 +147,7 @@ def test_rodas4p2_derivative_matches_central_differences():
 def test_rodas4p2_gradient_matches_central_differences():
     """The order-4 stepper (`SolverOptions(method="rodas4p2")`, its J̃ differentiated
     with the step): adaptive steps, the checkpointed adjoint, the gradient of 3-week
-    collagen against central differences (its J̃ held constant: 3e-6 off at rtol 1e-7)."""
+    collagen against central differences."""
     paper = jt.paper_parameters()
     options = jt.SolverOptions(rtol=1e-8, atol=1e-11, method="rodas4p2")
 
