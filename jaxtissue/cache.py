@@ -395,11 +395,14 @@ say: its program would never be found again), or an array inside it (equinox pri
 
 
 def _key(fn, treedef, static, leaves) -> str | None:
-    """A hex digest of `_description`, or None where a static argument is not fully
-    described by its repr (`_UNDESCRIBED`)."""
+    """A hex digest of `_description`, or None where a static argument cannot be fully
+    described (`_describe`)."""
     import hashlib
 
-    text = _description(fn, treedef, static, leaves)
+    try:
+        text = _description(fn, treedef, static, leaves)
+    except (_Undescribed, RecursionError):
+        return None
     return None if _UNDESCRIBED.search(text) else hashlib.sha256(text.encode()).hexdigest()[:40]
 
 
@@ -407,12 +410,48 @@ def _description(fn, treedef, static, leaves) -> str:
     """What names the program of `fn` for these arguments: the environment
     (`_environment`), the function, the structure and static values of its arguments
     and the shape and dtype of each array."""
-    static_leaves, static_def = jtu.tree_flatten(static)
     return "\n".join([
-        _environment(), f"{fn.__module__}.{fn.__qualname__}", repr(treedef), repr(static_def),
-        *(f"{type(x).__module__}.{type(x).__qualname__} {x!r}" for x in static_leaves),
+        _environment(), f"{fn.__module__}.{fn.__qualname__}", repr(treedef), repr(jtu.tree_structure(static)), _describe(static),
         *(f"{jnp.shape(x)} {jnp.result_type(x)} {getattr(x, 'weak_type', False)}" for x in leaves),
     ])
+
+
+class _Undescribed(Exception):
+    """A static value that `_describe` cannot name exactly."""
+
+
+def _describe(x) -> str:
+    """An exact description of a static value: every field of a dataclass (an equinox
+    module's static fields included, and fields its repr leaves out), the items of
+    tuples, lists and dicts, arrays by dtype, shape and a digest of their bytes, numbers
+    and strings by their (round-tripping) repr; any other object by its repr, which
+    must not hide what it holds (`_UNDESCRIBED`; else `_Undescribed`)."""
+    import dataclasses
+    import enum
+    import hashlib
+
+    import numpy as np
+
+    kind = f"{type(x).__module__}.{type(x).__qualname__}"
+    if x is None or isinstance(x, (bool, int, float, complex, str, bytes, enum.Enum)):
+        return f"{kind} {x!r}"
+    if isinstance(x, (np.ndarray, np.generic, jax.Array)):
+        if isinstance(x, jax.core.Tracer):
+            raise _Undescribed(kind)
+        a = np.ascontiguousarray(x)
+        return f"{kind} {a.dtype} {a.shape} {hashlib.sha256(a.tobytes()).hexdigest()}"
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return f"{kind}(" + ", ".join(f"{f.name}={_describe(getattr(x, f.name))}" for f in dataclasses.fields(x)) + ")"
+    if isinstance(x, (tuple, list)):
+        return f"{kind}[" + ", ".join(map(_describe, x)) + "]"
+    if isinstance(x, dict):
+        return f"{kind}{{" + ", ".join(sorted(f"{_describe(k)}: {_describe(v)}" for k, v in x.items())) + "}"
+    if isinstance(x, (set, frozenset)):
+        return f"{kind}{{" + ", ".join(sorted(map(_describe, x))) + "}"
+    text = repr(x)
+    if _UNDESCRIBED.search(text):
+        raise _Undescribed(text)
+    return f"{kind} {text}"
 
 
 @functools.lru_cache(maxsize=1)

@@ -2,6 +2,7 @@
 run loads its programs (JAX's compiled programs, and jaxtissue's saved executables that
 skip tracing too); an unusable folder or a corrupt entry costs a warning only."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -189,6 +190,46 @@ def test_saved_executables_are_loaded_and_give_what_the_program_gives(tmp_path, 
         assert len(_saved(tmp_path)) == 3
     cache.call(_affine, x, 7.0, "a")  # off again after the block
     assert len(_saved(tmp_path)) == 3
+
+
+@dataclasses.dataclass(frozen=True, eq=False)  # hashed by identity, as `calibration.Problem`
+class _Setting:
+    """A static argument whose repr leaves out the values that change the program."""
+
+    name: str
+    factor: float = dataclasses.field(repr=False)
+    offsets: tuple = dataclasses.field(default=(), repr=False)
+
+
+@eqx.filter_jit
+def _scaled(x, setting):
+    return x * setting.factor + sum(setting.offsets, 0.0)
+
+
+def test_static_values_their_repr_hides_name_other_programs(tmp_path, monkeypatch):
+    """A static dataclass is named by every field, not by its repr: values the repr
+    leaves out (here a factor, and an array with values NumPy's repr would round) are
+    other programs, never one loaded for other values; a dict, a set or a tuple is named
+    by its items (and their types)."""
+    monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
+    x = jnp.arange(3.0)
+    close = (np.asarray([0.1234567891]), np.asarray([0.1234567892]))
+    settings = [_Setting("s", 2.0), _Setting("s", 3.0), _Setting("s", 2.0, (close[0],)), _Setting("s", 2.0, (close[1],))]
+    assert len({repr(s) for s in settings}) == 1
+    with saved_executables(tmp_path):
+        for setting in settings:
+            np.testing.assert_array_equal(cache.call(_scaled, x, setting), _scaled(x, setting))
+        assert len(_saved(tmp_path)) == 4
+        monkeypatch.setattr(cache, "_loaded", {})
+        for setting in settings:  # loaded, each its own
+            np.testing.assert_array_equal(cache.call(_scaled, x, setting), _scaled(x, setting))
+        assert len(_saved(tmp_path)) == 4
+    with saved_executables(tmp_path / "items"):
+        labels = ({"a": 1.0, "b": (2, "c")}, {"b": (2, "c"), "a": 1.0}, {"a": 1.0, "b": (2, "d")},  # two programs
+                  (1, 1.0, True), (1.0, 1, True), (1, 1, 1), frozenset({0.1, 0.2}), frozenset({0.2, 0.1}))  # four
+        for label in labels:
+            assert cache.call(_affine, x, 2.0, label)["label"] == label
+        assert len(_saved(tmp_path / "items")) == 6
 
 
 def test_threads_keep_their_own_folder_of_saved_programs(tmp_path, monkeypatch):

@@ -248,8 +248,8 @@ def _scaled(problem, x):
 
 def test_a_problem_read_from_its_file_names_its_saved_programs(tmp_path, monkeypatch):
     """The fit's programs take the problem as a static argument (`cache.call`): one read
-    from its file is named by its repr, so that a second `calibrate` loads them; one
-    whose parameters hold arrays is compiled afresh (the cheap version of the next test)."""
+    from its file is named by its values, so that a second `calibrate` loads them; one
+    whose parameters hold arrays by theirs too (the cheap version of the next test)."""
     monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
     problem = cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml")
     x = jnp.arange(3.0)
@@ -261,9 +261,14 @@ def test_a_problem_read_from_its_file_names_its_saved_programs(tmp_path, monkeyp
             m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
             again = cal.read_problem(ROOT / "calibrate" / "engelmayr2005.toml")  # as a new process reads it
             np.testing.assert_array_equal(cache.call(_scaled, again, x), x * len(again.observations))
-        held = dataclasses.replace(problem, base=problem.base.replace(k_a=jnp.asarray(1e-5)))
-        cache.call(_scaled, held, x)
-        assert len(list(tmp_path.glob("*.jtx"))) == 1
+        held = [dataclasses.replace(problem, base=problem.base.replace(k_a=jnp.asarray(v))) for v in (1e-5, 1e-5, 1.0000000001e-5)]
+        cache.call(_scaled, held[0], x)
+        assert len(list(tmp_path.glob("*.jtx"))) == 2
+        with monkeypatch.context() as m:
+            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+            cache.call(_scaled, held[1], x)  # the same values in another array
+        cache.call(_scaled, held[2], x)
+        assert len(list(tmp_path.glob("*.jtx"))) == 3
 
 
 @pytest.mark.slow  # compiles the fit's programs; the test above is its cheap version

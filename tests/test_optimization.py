@@ -224,19 +224,21 @@ def _stages_times(design, x):
 
 def test_a_design_read_from_its_file_names_its_saved_programs(tmp_path, monkeypatch):
     """The optimisation's programs take the design as a static argument (`cache.prepared`):
-    one read from its file is named by its repr, so that a second `jaxtissue optimize`
-    loads them (the cheap version of the next test)."""
+    one read from its file is named by its values (a robust design's posterior draws
+    too), so that a second `jaxtissue optimize` loads them (the cheap version of the next
+    test)."""
     monkeypatch.delenv("JAXTISSUE_NO_SAVED_PROGRAMS", raising=False)
-    path = ROOT / "optimize" / "max_collagen_schedule.toml"
     x = jnp.arange(3.0)
-    with cache.saved_executables(tmp_path):
-        cache.call(_stages_times, opt.read_design(path), x)
-        assert len(list(tmp_path.glob("*.jtx"))) == 1
-        monkeypatch.setattr(cache, "_loaded", {})
-        with monkeypatch.context() as m:
-            m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
-            again = opt.read_design(path)  # as a new process reads it
-            np.testing.assert_array_equal(cache.prepared(_stages_times, again, x)(again, x + 1.0), (x + 1.0) * again.stages)
+    for n, name in enumerate(("max_collagen_schedule.toml", "max_collagen_robust.toml"), start=1):
+        path = ROOT / "optimize" / name
+        with cache.saved_executables(tmp_path):
+            cache.call(_stages_times, opt.read_design(path), x)
+            assert len(list(tmp_path.glob("*.jtx"))) == n
+            monkeypatch.setattr(cache, "_loaded", {})
+            with monkeypatch.context() as m:
+                m.setattr(cache, "_compile", lambda *a: pytest.fail("compiled again"))
+                again = opt.read_design(path)  # as a new process reads it
+                np.testing.assert_array_equal(cache.prepared(_stages_times, again, x)(again, x + 1.0), (x + 1.0) * again.stages)
 
 
 @pytest.mark.slow  # compiles the optimisation's programs; the test above is its cheap version

@@ -280,9 +280,8 @@ def lm_solver(problem: Problem, batch: int):
     """`solve(t0, args)`: the problem's compiled LM solve (`lm_solve`) of `batch` starts
     t0 at a time. Compiled once per problem (the fit and the profiles' points share it)
     and, where `cache.saved_executables` is on (the command line), saved: a second
-    `jaxtissue calibrate` of the same problem loads it instead of tracing it again, as
-    a repr names the problem completely (a `Problem` holding arrays is compiled afresh
-    in every process)."""
+    `jaxtissue calibrate` of the same problem loads it instead of tracing it again
+    (named by the problem's values, `cache.call`)."""
     return functools.partial(cache.call, _jitted(_lm_program, problem), problem, batch)
 
 

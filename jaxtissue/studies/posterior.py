@@ -822,7 +822,7 @@ def whitened_programs(problem: Problem, settings: SamplerSettings):
     `whitening`'s z), with args = (`Whitening.args()`, `Correction`); their warmup in
     `warmup_phases(settings)` parts, `correct` run between them. Jitted here (the
     compiled programs are freed with the functions returned) and named by the problem's
-    and the settings' reprs: where the command line saves its programs, a second run
+    and the settings' values: where the command line saves its programs, a second run
     loads them (`cache.call`)."""
     program = eqx.filter_jit(_whitened_program)
     return tuple(functools.partial(cache.call, program, problem, settings, warmup_phases(settings), which)
@@ -927,7 +927,7 @@ def _residual_batch(problem: Problem, size: int, rows):
 
 @functools.lru_cache(maxsize=4)
 def _batched_residuals(problem: Problem, size: int):
-    """`_residual_batch` for `problem`, jitted once per problem: named by its repr where
+    """`_residual_batch` for `problem`, jitted once per problem: named by its values where
     the command line saves its programs, so that a second run loads it (`cache.call`)."""
     return functools.partial(cache.call, eqx.filter_jit(_residual_batch), problem, size)
 
