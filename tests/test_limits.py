@@ -176,6 +176,50 @@ def test_sigint_ends_a_run_at_once_and_a_second_writer_is_refused(tmp_path, caps
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stderr.txt"]
 
 
+_LATE_WRITER = """
+import os, pathlib, signal, sys, threading, time
+from jaxtissue import cli, io
+
+writing = threading.Event()
+
+def work(args):  # a command whose next write comes after the signal has been answered
+    os.kill(os.getpid(), signal.SIGTERM)
+    while not io.ending():
+        time.sleep(0.001)
+    writing.set()
+    io.atomic_write_text(pathlib.Path(sys.argv[1]) / "late.txt", "late")  # refused: the process is ending
+    return 0
+
+release = io.release_outputs
+def release_then_wait(ending=False):  # the main thread, ending: time for the worker's error line to appear
+    release(ending)
+    if ending and writing.wait(30):
+        time.sleep(0.5)
+
+io.release_outputs = release_then_wait
+
+build = cli.build_parser
+def with_work():
+    parser = build()
+    parser.commands["params"].set_defaults(func=work)
+    return parser
+
+cli.build_parser = with_work
+sys.exit(cli.main(["params"]))
+"""
+
+
+def test_a_write_refused_while_a_signal_ends_the_process_prints_nothing(tmp_path):
+    """The signal line race, made deterministic: the command's worker writes only after
+    the main thread has started ending the process on SIGTERM, and the main thread
+    gives it half a second before its own line; the write is refused and its error
+    ("interrupted") is not printed, so the signal's line is the only one."""
+    proc = subprocess.run([sys.executable, "-c", _LATE_WRITER, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 143, proc.stderr
+    assert proc.stderr.splitlines() == ["jaxtissue: interrupted by SIGTERM; no output was written"]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_long_runs_are_the_ones_that_show_progress_by_default():
     """On a terminal, `simulate` shows a bar with the remaining time for runs expected to
     outlast `LONG_RUN_S` after compiling: not the default grids, the refined ones."""
