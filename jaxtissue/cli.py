@@ -816,6 +816,10 @@ def _run(args) -> int:
     except BrokenPipeError:  # e.g. `jaxtissue params | head`
         sys.stderr.close()
         return 0
+    except OSError as err:  # the file system's refusal (a full disk, a folder removed meanwhile), not a bug
+        where = f" ({err.filename})" if err.filename else ""
+        _say(f"jaxtissue: error: {err.strerror or err}{where}. Nothing was written.")
+        return 1
     except Exception as err:  # a bug, not the user's mistake: still one line
         if os.environ.get("JAXTISSUE_DEBUG"):
             raise

@@ -200,7 +200,10 @@ def lock_output(out, argument: str = "out") -> None:
     lock = out.resolve().parent / f".{out.name}.lock"
     if lock in _LOCKS:
         return
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    except OSError as err:  # e.g. a read-only or virtual file system that os.access calls writable
+        raise InputError(f"`{argument}` {out}: cannot write in {lock.parent} ({err.strerror})") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -166,6 +167,31 @@ def test_unwritable_output(tmp_path, capsys):
     locked.chmod(0o500)
     assert main(["simulate", "--t-end", "2e4", "--out", str(locked / "out")]) == 2
     assert "cannot write" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_an_output_where_the_file_system_refuses_files(capsys):
+    """/proc takes no new files, even from root (for whom `os.access` says yes)."""
+    assert main(["simulate", "--t-end", "2e4", "--out", "/proc/jaxtissue-out"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jaxtissue: error: --out /proc/jaxtissue-out: cannot write in /proc")
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    """The file system refusing a write mid-command (here: no space left) is one line
+    and exit code 1, not an internal error; no output folder, partial or lock remains."""
+    import errno
+    import tempfile
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), kwargs.get("dir"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", full)
+    assert main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", str(tmp_path / "run")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert re.fullmatch(rf"jaxtissue: error: No space left on device \({re.escape(str(tmp_path))}/\.run\.partial-\w+\)\. Nothing was written\.", err[0]), err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_output_parents_are_created_but_not_through_a_file(tmp_path, capsys):
