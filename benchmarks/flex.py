@@ -2,10 +2,12 @@
 same coupled scheme with SciPy for the growth solves, in one run.
 
 Reports: compile time in JAX's stages (tracing, lowering, XLA) and the programs' sizes
-(HLO instructions); forward wall time split into beam cycles and growth; the gradient
-of 3-week collagen with respect to all parameters and the protocol (time and peak
-memory relative to the forward run, from XLA's memory analysis), keeping every
-coupling interval's state or, nested, ~√n of them (in float64 or float32); and the SciPy
+(HLO instructions; fusions after XLA's passes); forward wall time split into beam
+cycles and growth; the gradient of 3-week collagen with respect to all parameters and
+the protocol (time and peak memory relative to the forward run, from XLA's memory
+analysis), keeping every coupling interval's state or, nested, ~√n of them (in float64
+or float32); the compile time of an interval's two pieces' gradients on their own, and
+of the growth piece's with a hand-written discrete adjoint (`stepwise_adjoint`); and the SciPy
 baseline — per growth interval the same jitted beam cycle, the same lumped dispersion,
 then `solve_ivp(BDF)` with the 2-D Jacobian's sparsity pattern (a NumPy right-hand
 side written from docs/model.md, as a user would).
@@ -121,7 +123,8 @@ def timed(fn, *args, repeat=1):
 
 def staged(fn, *args):
     """`fn` (jitted) compiled for `args` in JAX's stages: (compiled, seconds of tracing,
-    lowering and XLA's compilation, HLO instructions before XLA's passes)."""
+    lowering and XLA's compilation, (HLO instructions before XLA's passes, fusions after
+    them: XLA's CPU compile time grows with the kernels it generates, one per fusion))."""
     t0 = time.perf_counter()
     traced = fn.trace(*args)
     t1 = time.perf_counter()
@@ -130,7 +133,12 @@ def staged(fn, *args):
     compiled = lowered.compile()
     t3 = time.perf_counter()
     instructions = sum(" = " in line for line in lowered.as_text(dialect="hlo").splitlines())
-    return compiled, (t1 - t0, t2 - t1, t3 - t2), instructions
+    fusions = sum(" fusion(" in line for line in compiled.as_text().splitlines())
+    return compiled, (t1 - t0, t2 - t1, t3 - t2), (instructions, fusions)
+
+
+def program_size(size) -> str:
+    return f"{size[0]} HLO instructions, {size[1]} fusions"
 
 
 def stages(seconds) -> str:
@@ -138,10 +146,65 @@ def stages(seconds) -> str:
     return f"{trace + lower + xla:.1f} s: tracing {trace:.1f}, lowering {lower:.1f}, XLA {xla:.1f}"
 
 
+def stepwise_adjoint(model: GrowthModel, y0, span, options, args, max_steps=64):
+    """The state `growth_solve` reaches from y0 after `span` seconds (the same solver,
+    controller and steps), with a hand-written discrete adjoint instead of diffrax's
+    checkpointed one: the forward solve records its step times (at most `max_steps`);
+    the reverse pass replays the steps from y0, keeping every state, then takes each
+    step's VJP in reverse order."""
+    import diffrax
+
+    from jaxtissue.numerics import SOLVERS, Rescaled, Stacked, stack
+
+    solver, treedef = SOLVERS[options.method](), jax.tree_util.tree_structure(y0)
+
+    def term(m):
+        return diffrax.ODETerm(Rescaled(Stacked(m, treedef), span))
+
+    def step(m, u, a, t0, t1):
+        return solver.step(term(m), t0, t1, u, a, solver.init(term(m), t0, t1, u, a), False)[0]
+
+    def solve(m, u0, a):
+        saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(t1=True), diffrax.SubSaveAt(steps=True, fn=lambda t, y, a: jnp.zeros(()))])
+        sol = diffrax.diffeqsolve(term(m), solver, 0.0, 1.0, None, u0, a, saveat=saveat, max_steps=max_steps,
+                                  stepsize_controller=options.controller(span), throw=False)
+        ends = sol.ts[1]
+        return sol.ys[0][-1], (jnp.concatenate([jnp.zeros(1), ends[:-1]]), ends, sol.stats["num_accepted_steps"])
+
+    @jax.custom_vjp
+    def run(m, u0, a):
+        return solve(m, u0, a)[0]
+
+    def run_fwd(m, u0, a):
+        u1, steps = solve(m, u0, a)
+        return u1, (m, u0, a, steps)
+
+    def run_bwd(res, ct):
+        m, u0, a, (starts, ends, n) = res
+        def replay(u, k):
+            return jax.lax.cond(k < n, lambda u: step(m, u, a, starts[k], ends[k]), lambda u: u, u), u
+        _, us = jax.lax.scan(replay, u0, jnp.arange(max_steps))
+
+        def back(acc, k):
+            def vjp(ct_u, ct_ma):
+                d_m, d_u, d_a = jax.vjp(lambda m, u, a: step(m, u, a, starts[k], ends[k]), m, us[k], a)[1](ct_u)
+                return d_u, jax.tree_util.tree_map(jnp.add, ct_ma, (d_m, d_a))
+            return jax.lax.cond(k < n, vjp, lambda *acc: acc, *acc), None
+
+        zero = jax.tree_util.tree_map(jnp.zeros_like, (m, a))
+        (ct_u0, (ct_m, ct_a)), _ = jax.lax.scan(back, (ct, zero), jnp.arange(max_steps), reverse=True)
+        return ct_m, ct_u0, ct_a
+
+    run.defvjp(run_fwd, run_bwd)
+    return Stacked(model, treedef).unstack(run(model, stack(y0), args))
+
+
 def piece_compiles(params, protocol, y):
-    """Seconds of (tracing and lowering, XLA) for the gradient of one loading cycle's
-    lumped transport and of one coupling interval's growth solve, each on its own: what
-    the gradient of the whole run compiles at least once."""
+    """(seconds of tracing and lowering, of XLA, program size) for the gradient of one
+    loading cycle's lumped transport and of one coupling interval's growth solve, each
+    on its own (what the gradient of the whole run compiles at least once), and of the
+    growth interval with a hand-written discrete adjoint (`stepwise_adjoint`), whose
+    gradient differs from diffrax's by the last value returned (max, relative)."""
     options = jt.SolverOptions(o2_sweeps=default_o2_sweeps(GRID, params))
 
     def lumped(p, q, y):
@@ -150,17 +213,25 @@ def piece_compiles(params, protocol, y):
     def transport(p, q, y):
         return sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(lumped(p, q, y)))
 
+    def model(p, t):
+        return GrowthModel(coeffs=nondimensionalise(p), grid=GRID, transport=t, cell_transport=has_cell_transport(params),
+                           o2_sweeps=options.o2_sweeps)
+
     def growth(p, y, t):
-        model = GrowthModel(coeffs=nondimensionalise(p), grid=GRID, transport=t, cell_transport=has_cell_transport(params),
-                            o2_sweeps=options.o2_sweeps)
-        return jnp.sum(growth_solve(model, y, 0.0, 2.0e4, None, options, (p, GRID), checkpoints=8).ys.m)
+        return jnp.sum(growth_solve(model(p, t), y, 0.0, 2.0e4, None, options, (p, GRID), checkpoints=8).ys.m)
+
+    def growth_stepwise(p, y, t):
+        return jnp.sum(stepwise_adjoint(model(p, t), y, 2.0e4, options, (p, GRID)).m)
 
     t = lumped(params, protocol, y)
-    out = {}
-    for name, fn, args in (("one loading cycle", transport, (params, protocol, y)), ("one growth interval", growth, (params, y, t))):
-        _, (trace, lower, xla), _ = staged(jax.jit(jax.grad(fn, argnums=(0, 1, 2))), *args)
-        out[name] = (trace + lower, xla)
-    return out
+    out, grads = {}, {}
+    for name, fn, args in (("one loading cycle", transport, (params, protocol, y)), ("one growth interval", growth, (params, y, t)),
+                           ("one growth interval with a hand-written adjoint", growth_stepwise, (params, y, t))):
+        compiled, (trace, lower, xla), size = staged(jax.jit(jax.grad(fn, argnums=(0, 1, 2))), *args)
+        out[name] = (trace + lower, xla, size)
+        grads[name] = jax.flatten_util.ravel_pytree(compiled(*args))[0]
+    diffrax_grad, own = grads["one growth interval"], grads["one growth interval with a hand-written adjoint"]
+    return out, float(jnp.max(jnp.abs(own - diffrax_grad)) / jnp.max(jnp.abs(diffrax_grad)))
 
 
 def main(quick=False):
@@ -176,7 +247,7 @@ def main(quick=False):
     forward, fwd_stages, fwd_size = staged(jax.jit(lambda p, q: jt.simulate(p, q, t_end_s=t_end, grid=GRID, beam=BEAM)), params, protocol)
     timed(forward, params, protocol)
     result, t_fwd = timed(forward, params, protocol, repeat=3)
-    print(f"\nforward: {t_fwd:.1f} s after compilation; compile {stages(fwd_stages)} (goal <= 4 s); {fwd_size} HLO instructions")
+    print(f"\nforward: {t_fwd:.1f} s after compilation; compile {stages(fwd_stages)} (goal <= 4 s); {program_size(fwd_size)}")
 
     # one coupling step's beam work: the cycle and its lumped dispersion on the growth grid
     transport_of = jax.jit(lambda y, p, q: lumped_transport(flex_cycle(y, p, q, GRID, BEAM)[1], p, GRID, BEAM, "dispersive", "centroid").dispersion)
@@ -230,11 +301,12 @@ def main(quick=False):
         m_grad = memory(grad)
         differs = float(jnp.max(jnp.abs(g - values[0])) / jnp.max(jnp.abs(values[0])))
         print(f"  {label}: {t_grad:.1f} s = {t_grad / t_fwd:.1f}x forward, memory {m_grad / 2**20:.1f} MiB = "
-              f"{m_grad / m_fwd:.1f}x; compile {stages(seconds)} (goal <= 10 s), {size} HLO instructions = "
-              f"{size / fwd_size:.1f}x forward's; gradient differs from the first by {differs:.0e} (max, relative)")
-    pieces = piece_compiles(params, protocol, result.final)
+              f"{m_grad / m_fwd:.1f}x; compile {stages(seconds)} (goal <= 10 s), {program_size(size)} = "
+              f"{size[0] / fwd_size[0]:.1f}x and {size[1] / fwd_size[1]:.1f}x forward's; gradient differs from the first by {differs:.0e} (max, relative)")
+    pieces, differs = piece_compiles(params, protocol, result.final)
     print("  the pieces' gradients compiled on their own (tracing + XLA): "
-          + "; ".join(f"{name} {a + b:.1f} s ({a:.1f} + {b:.1f})" for name, (a, b) in pieces.items()))
+          + "; ".join(f"{name} {a + b:.1f} s ({a:.1f} + {b:.1f}; {size[1]} fusions)" for name, (a, b, size) in pieces.items())
+          + f"; the two growth gradients differ by {differs:.0e} (max, relative)")
 
     # ---- SciPy growth solves in the same staggered scheme
     p_concrete = jt.paper_parameters()
