@@ -399,7 +399,7 @@ def cmd_simulate(args) -> int:
         plots.time_series({args.regime: result}, tmp / "time_series.png")
     if args.checkpoint_every is not None:
         shutil.rmtree(kept, ignore_errors=True)
-    print(f"wrote {args.out}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
+    print(f"wrote {_folder(args.out)}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
     return 0
 
 
@@ -487,7 +487,7 @@ def cmd_cycle(args) -> int:
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_json(tmp / "summary.json", summary)
         plots.cycle_figures(cycle, beam, tmp / "shape.png", tmp / "flow.png")
-    print(f"wrote {args.out}/ (summary.json, shape.png, flow.png)")
+    print(f"wrote {_folder(args.out)}/ (summary.json, shape.png, flow.png)")
     return 0
 
 
@@ -526,7 +526,7 @@ def cmd_reproduce(args) -> int:
         bands = reproduce.calibrated_bands(args.t_end)
         cases.result()
         reproduce.write_report(results, params, tmp, bands)
-    print(f"wrote {args.out}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
+    print(f"wrote {_folder(args.out)}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
     return 0
 
 
@@ -584,7 +584,7 @@ def cmd_calibrate(args) -> int:
         for c in s.get("held_out", []):
             print(f"held out {c['observation']}: data {c['data']:.4g}, 90 % predictive [{c['lower']:.4g}, {c['upper']:.4g}]"
                   f" -> {'inside' if c['inside'] else 'OUTSIDE'}")
-    print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
+    print(f"wrote {_folder(args.out)}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
           + (", posterior.nc, pairs.png, traces.png)" if sampled is not None else ")"))
     return 0
 
@@ -603,7 +603,7 @@ def _export_petab(args, overrides) -> int:
     problem = calibration.read_problem(args.problem, overrides)
     with io.output_folder(args.export_petab, args.overwrite, argument="export_petab") as tmp:
         files = petab_problems.export(problem, tmp)
-    print(f"wrote {args.export_petab}/ ({', '.join(files)}); check it with `jaxtissue lint {args.export_petab}/problem.yaml`")
+    print(f"wrote {_folder(args.export_petab)}/ ({', '.join(files)}); check it with `jaxtissue lint {_folder(args.export_petab)}/problem.yaml`")
     return 0
 
 
@@ -656,7 +656,7 @@ def cmd_predict(args) -> int:
         plots.predictive_bands(ds["time_s"].values, bands, data, title, tmp / "bands.png")
     for k, v in end.items():
         print(f"{k} at {args.t_end:g} s: median {v['q50']:.4g}, 90 % band [{v['q05']:.4g}, {v['q95']:.4g}]")
-    print(f"wrote {args.out}/ (predict.nc, summary.json, bands.png)")
+    print(f"wrote {_folder(args.out)}/ (predict.nc, summary.json, bands.png)")
     return 0
 
 
@@ -675,7 +675,7 @@ def cmd_optimize(args) -> int:
     s = optimization.summary(study)
     print(f"{s['sense']} {design.objective}: optimum {s['objective']:.5g} {s['objective_unit']} at {s['optimum']} "
           f"(paper protocol {s['baseline_objective']:.5g}, best grid point {s['grid_best_objective']:.5g})")
-    print(f"wrote {args.out}/ (summary.json, params.toml, report.md, landscape.png, history.png)")
+    print(f"wrote {_folder(args.out)}/ (summary.json, params.toml, report.md, landscape.png, history.png)")
     return 0
 
 
@@ -754,7 +754,7 @@ def cmd_sensitivity(args) -> int:
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_json(tmp / "sensitivity.json", {"regime": args.regime, "t_end_s": args.t_end, "sensitivities": table})
         plots.sensitivities(table, tmp / "sensitivity.png", title=f"{args.regime} culture, t = {args.t_end:g} s")
-    print(f"wrote {args.out}/ (sensitivity.json, sensitivity.png)")
+    print(f"wrote {_folder(args.out)}/ (sensitivity.json, sensitivity.png)")
     return 0
 
 
@@ -783,6 +783,13 @@ def main(argv=None) -> int:
             from .io import release_outputs
 
             release_outputs()
+
+
+def _folder(path) -> str:
+    """An output folder as the "wrote" lines show it (no doubled slash after `--out DIR/`)."""
+    import pathlib
+
+    return str(pathlib.Path(path))
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

@@ -195,8 +195,9 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatc
 
 
 def test_output_parents_are_created_but_not_through_a_file(tmp_path, capsys):
-    assert main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", str(tmp_path / "a" / "b")]) == 0
+    assert main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", f"{tmp_path / 'a' / 'b'}/"]) == 0
     assert (tmp_path / "a" / "b" / "summary.json").exists()
+    assert capsys.readouterr().out.strip().splitlines()[-1].startswith(f"wrote {tmp_path / 'a' / 'b'}/ (result.nc")
     (tmp_path / "file").write_text("x")
     assert main(["simulate", "--t-end", "2e4", "--out", str(tmp_path / "file" / "b")]) == 2
     assert "cannot create folder" in capsys.readouterr().err
