@@ -823,9 +823,9 @@ def _run(args) -> int:
     except BrokenPipeError:  # e.g. `jaxtissue params | head`
         sys.stderr.close()
         return 0
-    except OSError as err:  # the file system's refusal (a full disk, a folder removed meanwhile), not a bug
+    except OSError as err:  # the system's refusal (a full disk, a lost connection), not a bug
         where = f" ({err.filename})" if err.filename else ""
-        _say(f"jaxtissue: error: {err.strerror or err}{where}. Nothing was written.")
+        _say(f"jaxtissue: error: {err.strerror or err}{where}; no output was written{_kept_checkpoint(args)}")
         return 1
     except Exception as err:  # a bug, not the user's mistake: still one line
         if os.environ.get("JAXTISSUE_DEBUG"):

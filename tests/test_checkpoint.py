@@ -56,6 +56,34 @@ def test_segments_of_a_time_invariant_protocol_share_one_program(tmp_path):
     assert r.ts == tuple(save_times(1.2e5, jt.COUPLING_INTERVAL_S).tolist())
 
 
+def test_a_write_the_disk_refuses_keeps_the_checkpoint(tmp_path, capsys, monkeypatch):
+    """A checkpointed run whose output the disk refuses (no space left in the output's
+    folder) is one line naming the kept checkpoint; `--resume` then writes the result."""
+    import errno
+    import tempfile
+
+    out = tmp_path / "run"
+    mkstemp = tempfile.mkstemp
+
+    def full_where_the_output_goes(*args, **kwargs):
+        if ".run.partial-" in str(kwargs.get("dir", "")):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(kwargs["dir"]))
+        return mkstemp(*args, **kwargs)
+
+    run = ["simulate", "--t-end", "6e4", "--grid", "1", "8", "--checkpoint-every", "1", "--no-progress"]
+    with monkeypatch.context() as m:
+        m.setattr(tempfile, "mkstemp", full_where_the_output_goes)
+        assert main([*run, "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jaxtissue: error: No space left on device (") and err[0].endswith(
+        f"; no output was written; the checkpoint {out}.checkpoint is kept: continue with `jaxtissue simulate --resume {out}`"), err
+    assert not out.exists()
+    assert main(["simulate", "--resume", str(out)]) == 0  # (to the same bits: the killed run's test below)
+    with xr.open_dataset(out / "result.nc") as done:
+        assert done["time_s"].values[-1] == 6e4
+    assert not pathlib.Path(f"{out}.checkpoint").exists()
+
+
 def test_killed_run_resumes_to_the_same_bits(tmp_path):
     ref = tmp_path / "ref"
     assert main(RUN + ["--out", str(ref)]) == 0
