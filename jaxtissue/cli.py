@@ -34,6 +34,7 @@ from .grid import DEFAULT_SHAPES
 from .io import InputError, RunError, ending
 from .limits import MAX_STEPS
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S
+from .simulate import METHODS
 
 LONG_RUN_S = 10.0
 """`simulate` shows its progress bar on a terminal for runs expected to take longer
@@ -121,14 +122,14 @@ def build_parser() -> argparse.ArgumentParser:
     _parameter_arguments(s)
     s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
     s.add_argument("--max-steps", type=_max_steps, default=4096, metavar="N", help=f"step limit of each growth solve (default 4096, at most {MAX_STEPS})")
-    s.add_argument("--method", choices=["ros34pw2", "rodas4p2"], default="ros34pw2",
+    s.add_argument("--method", choices=METHODS, default="ros34pw2",
                    help="time stepper of the growth solve: ros34pw2 (order 3, any run; the default) or rodas4p2 (order 4, "
                         "for static runs on 1-D grids: fewer steps at tight --rtol; docs/numerics.md)")
     s.add_argument("--save", choices=["intervals", "end"], default="intervals", help="the series at every coupling interval (default) or only at --t-end")
     _output_arguments(s, required=False)
     s.add_argument("--checkpoint-every", type=_grid_size, default=None, metavar="N",
                    help="save the state every N coupling intervals in DIR.checkpoint/ (a killed run continues with --resume DIR)")
-    s.add_argument("--resume", metavar="DIR", help="continue the interrupted --checkpoint-every run whose --out was DIR (its settings are reused)")
+    s.add_argument("--resume", type=_folder, metavar="DIR", help="continue the interrupted --checkpoint-every run whose --out was DIR (its settings are reused)")
     s.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help=f"progress bar over the run, with its remaining time (its program is then not cached; default: on a terminal, for runs expected to last over {LONG_RUN_S:g} s)")
     s.set_defaults(func=cmd_simulate)
 
@@ -152,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     k = sub.add_parser("calibrate", help="fit parameters to measurements (multi-start LM, standard errors, profiles)")
     k.add_argument("problem", metavar="PROBLEM", help="problem file: TOML (calibrate/engelmayr2005.toml) or PEtab v2 YAML "
                    "(calibrate/engelmayr2005/problem.yaml)")
-    k.add_argument("--export-petab", metavar="DIR", help="write the TOML problem as PEtab v2 files into DIR instead of fitting")
+    k.add_argument("--export-petab", type=_folder, metavar="DIR", help="write the TOML problem as PEtab v2 files into DIR instead of fitting")
     k.add_argument("--starts", type=_grid_size, default=None, metavar="N", help="number of starts (default: the problem's [fit] starts)")
     k.add_argument("--no-profiles", action="store_true", help="skip the profile likelihoods (identifiability then from standard errors)")
     k.add_argument("--posterior", action="store_true", help="then sample the posterior with NUTS: posterior.nc, pairs.png, traces.png")
@@ -170,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=cmd_lint)
 
     d = sub.add_parser("predict", help="posterior predictive bands of a protocol from a calibrated posterior")
-    d.add_argument("--posterior", required=True, metavar="DIR", help="a `jaxtissue calibrate --posterior` output folder")
+    d.add_argument("--posterior", required=True, type=_folder, metavar="DIR", help="a `jaxtissue calibrate --posterior` output folder")
     d.add_argument("--regime", choices=["static", "flex"], default="flex", help="culture regime (default: flex)")
     _flex_arguments(d)
     d.add_argument("--t-end", type=_positive_float, default=THREE_WEEKS_S, metavar="S", help="end of culture in s (default 3 weeks)")
@@ -182,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = sub.add_parser("sweep", help="a batch of simulations over a grid or design of parameter sets")
     w.add_argument("sweep", metavar="SWEEP.toml", help="sweep definition (see README)")
-    w.add_argument("--out", required=True, metavar="DIR", help="output folder: chunks/, sweep.nc, summary.json")
+    w.add_argument("--out", required=True, type=_folder, metavar="DIR", help="output folder: chunks/, sweep.nc, summary.json")
     w.add_argument("--resume", action="store_true", help="continue an interrupted sweep in DIR, skipping finished chunks")
     w.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty DIR")
     w.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: on a terminal)")
@@ -228,8 +229,16 @@ def _parameter_arguments(parser):
     parser.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
 
 
+def _folder(text: str) -> str:
+    """A folder argument as one path (`DIR/` is `DIR`): what `DIR.checkpoint` and the
+    "wrote DIR/" lines are made from."""
+    import pathlib
+
+    return str(pathlib.Path(text))
+
+
 def _output_arguments(parser, required=True):
-    parser.add_argument("--out", required=required, metavar="DIR", help="output folder (must be new or empty)")
+    parser.add_argument("--out", required=required, type=_folder, metavar="DIR", help="output folder (must be new or empty)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
 
 
@@ -399,7 +408,7 @@ def cmd_simulate(args) -> int:
         plots.time_series({args.regime: result}, tmp / "time_series.png")
     if args.checkpoint_every is not None:
         shutil.rmtree(kept, ignore_errors=True)
-    print(f"wrote {_folder(args.out)}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
+    print(f"wrote {args.out}/ (result.nc, summary.json, params.toml, profiles.png, time_series.png)")
     return 0
 
 
@@ -487,7 +496,7 @@ def cmd_cycle(args) -> int:
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_json(tmp / "summary.json", summary)
         plots.cycle_figures(cycle, beam, tmp / "shape.png", tmp / "flow.png")
-    print(f"wrote {_folder(args.out)}/ (summary.json, shape.png, flow.png)")
+    print(f"wrote {args.out}/ (summary.json, shape.png, flow.png)")
     return 0
 
 
@@ -526,7 +535,7 @@ def cmd_reproduce(args) -> int:
         bands = reproduce.calibrated_bands(args.t_end)
         cases.result()
         reproduce.write_report(results, params, tmp, bands)
-    print(f"wrote {_folder(args.out)}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
+    print(f"wrote {args.out}/ (report.md, summary.json, figures fig5–fig10, cases/*.nc)")
     return 0
 
 
@@ -584,7 +593,7 @@ def cmd_calibrate(args) -> int:
         for c in s.get("held_out", []):
             print(f"held out {c['observation']}: data {c['data']:.4g}, 90 % predictive [{c['lower']:.4g}, {c['upper']:.4g}]"
                   f" -> {'inside' if c['inside'] else 'OUTSIDE'}")
-    print(f"wrote {_folder(args.out)}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
+    print(f"wrote {args.out}/ (summary.json, fitted.toml, report.md, waterfall.png, fit.png, profiles.png, correlation.png"
           + (", posterior.nc, pairs.png, traces.png)" if sampled is not None else ")"))
     return 0
 
@@ -603,7 +612,7 @@ def _export_petab(args, overrides) -> int:
     problem = calibration.read_problem(args.problem, overrides)
     with io.output_folder(args.export_petab, args.overwrite, argument="export_petab") as tmp:
         files = petab_problems.export(problem, tmp)
-    print(f"wrote {_folder(args.export_petab)}/ ({', '.join(files)}); check it with `jaxtissue lint {_folder(args.export_petab)}/problem.yaml`")
+    print(f"wrote {args.export_petab}/ ({', '.join(files)}); check it with `jaxtissue lint {args.export_petab}/problem.yaml`")
     return 0
 
 
@@ -656,7 +665,7 @@ def cmd_predict(args) -> int:
         plots.predictive_bands(ds["time_s"].values, bands, data, title, tmp / "bands.png")
     for k, v in end.items():
         print(f"{k} at {args.t_end:g} s: median {v['q50']:.4g}, 90 % band [{v['q05']:.4g}, {v['q95']:.4g}]")
-    print(f"wrote {_folder(args.out)}/ (predict.nc, summary.json, bands.png)")
+    print(f"wrote {args.out}/ (predict.nc, summary.json, bands.png)")
     return 0
 
 
@@ -675,7 +684,7 @@ def cmd_optimize(args) -> int:
     s = optimization.summary(study)
     print(f"{s['sense']} {design.objective}: optimum {s['objective']:.5g} {s['objective_unit']} at {s['optimum']} "
           f"(paper protocol {s['baseline_objective']:.5g}, best grid point {s['grid_best_objective']:.5g})")
-    print(f"wrote {_folder(args.out)}/ (summary.json, params.toml, report.md, landscape.png, history.png)")
+    print(f"wrote {args.out}/ (summary.json, params.toml, report.md, landscape.png, history.png)")
     return 0
 
 
@@ -754,7 +763,7 @@ def cmd_sensitivity(args) -> int:
     with io.output_folder(args.out, args.overwrite) as tmp:
         io.write_json(tmp / "sensitivity.json", {"regime": args.regime, "t_end_s": args.t_end, "sensitivities": table})
         plots.sensitivities(table, tmp / "sensitivity.png", title=f"{args.regime} culture, t = {args.t_end:g} s")
-    print(f"wrote {_folder(args.out)}/ (sensitivity.json, sensitivity.png)")
+    print(f"wrote {args.out}/ (sensitivity.json, sensitivity.png)")
     return 0
 
 
@@ -783,13 +792,6 @@ def main(argv=None) -> int:
             from .io import release_outputs
 
             release_outputs()
-
-
-def _folder(path) -> str:
-    """An output folder as the "wrote" lines show it (no doubled slash after `--out DIR/`)."""
-    import pathlib
-
-    return str(pathlib.Path(path))
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

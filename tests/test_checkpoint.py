@@ -73,12 +73,12 @@ def test_a_write_the_disk_refuses_keeps_the_checkpoint(tmp_path, capsys, monkeyp
     run = ["simulate", "--t-end", "4e4", "--grid", "1", "8", "--checkpoint-every", "1", "--no-progress"]
     with monkeypatch.context() as m:
         m.setattr(tempfile, "mkstemp", full_where_the_output_goes)
-        assert main([*run, "--out", str(out)]) == 1
+        assert main([*run, "--out", f"{out}/"]) == 1  # DIR/ is DIR: its checkpoint DIR.checkpoint beside it
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("jaxtissue: error: No space left on device (") and err[0].endswith(
         f"; no output was written; the checkpoint {out}.checkpoint is kept: continue with `jaxtissue simulate --resume {out}`"), err
     assert not out.exists()
-    assert main(["simulate", "--resume", str(out)]) == 0  # (to the same bits: the killed run's test below)
+    assert main(["simulate", "--resume", f"{out}/"]) == 0  # (to the same bits: the killed run's test below)
     with xr.open_dataset(out / "result.nc") as done:
         assert done["time_s"].values[-1] == 4e4
     assert not pathlib.Path(f"{out}.checkpoint").exists()
