@@ -22,7 +22,10 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import dataclasses
+import enum
 import functools
+import hashlib
 import os
 import pathlib
 import re
@@ -34,6 +37,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 
 MAX_SIZE_BYTES = 2 * 1024**3
 """The folder's size limit; least recently used entries go first."""
@@ -397,8 +401,6 @@ say: its program would never be found again), or an array inside it (equinox pri
 def _key(fn, treedef, static, leaves) -> str | None:
     """A hex digest of `_description`, or None where a static argument cannot be fully
     described (`_describe`)."""
-    import hashlib
-
     try:
         text = _description(fn, treedef, static, leaves)
     except (_Undescribed, RecursionError):
@@ -426,12 +428,6 @@ def _describe(x) -> str:
     tuples, lists and dicts, arrays by dtype, shape and a digest of their bytes, numbers
     and strings by their (round-tripping) repr; any other object by its repr, which
     must not hide what it holds (`_UNDESCRIBED`; else `_Undescribed`)."""
-    import dataclasses
-    import enum
-    import hashlib
-
-    import numpy as np
-
     kind = f"{type(x).__module__}.{type(x).__qualname__}"
     if x is None or isinstance(x, (bool, int, float, complex, str, bytes, enum.Enum)):
         return f"{kind} {x!r}"
@@ -458,7 +454,6 @@ def _describe(x) -> str:
 def _environment() -> str:
     """What else decides a compiled program: jaxtissue's source, the versions of the
     libraries that trace and compile it, XLA's flags and the devices."""
-    import hashlib
     import importlib.metadata
 
     source = hashlib.sha256()
