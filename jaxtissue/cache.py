@@ -413,7 +413,7 @@ def _description(fn, treedef, static, leaves) -> str:
     (`_environment`), the function, the structure and static values of its arguments
     and the shape and dtype of each array."""
     return "\n".join([
-        _environment(), f"{fn.__module__}.{fn.__qualname__}", repr(treedef), repr(jtu.tree_structure(static)), _describe(static),
+        _environment(), f"{fn.__module__}.{fn.__qualname__}", repr(treedef), _describe(static),
         *(f"{jnp.shape(x)} {jnp.result_type(x)} {getattr(x, 'weak_type', False)}" for x in leaves),
     ])
 
