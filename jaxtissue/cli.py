@@ -231,9 +231,11 @@ def _parameter_arguments(parser):
 
 def _folder(text: str) -> str:
     """A folder argument as one path (`DIR/` is `DIR`): what `DIR.checkpoint` and the
-    "wrote DIR/" lines are made from."""
+    "wrote DIR/" lines are made from; an empty one is refused (it would be ".")."""
     import pathlib
 
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} names no folder")
     return str(pathlib.Path(text))
 
 

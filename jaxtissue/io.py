@@ -178,6 +178,8 @@ def check_output_folder(out, overwrite: bool, argument: str = "out") -> pathlib.
     """Fail early (an `InputError` naming `argument`) if `out` cannot be written or would
     be clobbered (a non-empty folder, unless `overwrite`)."""
     out = pathlib.Path(out)
+    if out.name in ("", ".."):  # ".", "/", "..": no folder of its own to put in place
+        raise InputError(f"`{argument}` {out}: name the output folder itself, not ., .. or /")
     if out.exists() and not out.is_dir():
         raise InputError(f"`{argument}` {out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:

@@ -203,6 +203,23 @@ def test_output_parents_are_created_but_not_through_a_file(tmp_path, capsys):
     assert "cannot create folder" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("out", [".", "..", "", "/", "sub/.."])
+def test_an_output_must_be_a_folder_of_its_own(tmp_path, capsys, monkeypatch, out):
+    """`--out .` (or `..`, `/`, an empty path) with `--overwrite` would replace the folder
+    the user works in: refused in one line, before anything is computed or touched."""
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "keep.txt").write_text("x")
+    monkeypatch.chdir(tmp_path / "sub")
+    try:
+        code = main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", out, "--overwrite"])
+    except SystemExit as exit:  # argparse's own one-line errors (cli._Parser)
+        code = exit.code
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--out" in err and ("names no folder" in err or "name the output folder itself" in err), err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep.txt", "sub"]
+
+
 def test_params_table_lists_every_field(capsys):
     assert main(["params"]) == 0
     out = capsys.readouterr().out
