@@ -471,8 +471,11 @@ def cmd_cycle(args) -> int:
     notes = warn_extrapolation(params, protocol)
     if not 0.0 <= args.ecm <= 1.0:
         raise InputError(f"--ecm {args.ecm:g} must be in [0, 1]")
-    if args.ny < 3 or args.segments < 4 or args.segments % 2 or args.steps < 8:
-        raise InputError("--ny must be >= 3, --segments an even number >= 4, --steps >= 8")
+    for flag, value, ok, allowed in (("--ny", args.ny, args.ny >= 3, "at least 3"),
+                                     ("--segments", args.segments, args.segments >= 4 and args.segments % 2 == 0, "an even number >= 4"),
+                                     ("--steps", args.steps, args.steps >= 8, "at least 8")):
+        if not ok:
+            raise InputError(f"{flag} {value} must be {allowed}")
     io.check_output_folder(args.out, args.overwrite)
     grid = BeamGrid(n_segments=args.segments, steps_per_cycle=args.steps)
     si = jax.tree_util.tree_map(jnp.asarray, params.si())  # values, not constants: one program for every parameter set

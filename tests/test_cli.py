@@ -210,11 +210,7 @@ def test_an_output_must_be_a_folder_of_its_own(tmp_path, capsys, monkeypatch, ou
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "keep.txt").write_text("x")
     monkeypatch.chdir(tmp_path / "sub")
-    try:
-        code = main(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", out, "--overwrite"])
-    except SystemExit as exit:  # argparse's own one-line errors (cli._Parser)
-        code = exit.code
-    assert code == 2
+    assert exit_code(["simulate", "--t-end", "2e4", "--grid", "1", "8", "--out", out, "--overwrite"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--out" in err and ("names no folder" in err or "name the output folder itself" in err), err
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep.txt", "sub"]
@@ -244,6 +240,9 @@ def test_cycle_command(tmp_path):
         (["--post-displacement", "30"], ["--post-displacement", "30", "below the strip length"]),
         (["--hold-fraction", "0.3"], ["--hold-fraction", "0.3", "[0, 0.25)"]),
         (["--period", "0"], ["--period", "positive"]),
+        (["--segments", "5"], ["--segments 5", "an even number >= 4"]),
+        (["--ny", "2"], ["--ny 2", "at least 3"]),
+        (["--steps", "4"], ["--steps 4", "at least 8"]),
     ],
 )
 def test_cycle_bad_input(tmp_path, capsys, args, words):
