@@ -66,7 +66,7 @@ def read_measurements(path) -> tuple[Observation, ...]:
     mistake is a `DataError` naming the row."""
     path = pathlib.Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
     except FileNotFoundError:
         raise DataError(f"{path}: no such measurement file") from None
     except (IsADirectoryError, UnicodeDecodeError) as err:

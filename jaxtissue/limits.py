@@ -95,7 +95,7 @@ def check_intervals(t_end_s: float, coupling_interval_s: float, name: str = "t_e
     n = math.ceil(t_end_s / coupling_interval_s - 1e-9)
     if n > MAX_INTERVALS:
         raise ResourceError(f"`{name}` = {t_end_s:g} s is {n:.3g} coupling intervals of {coupling_interval_s:g} s; "
-                            f"a run may have at most {MAX_INTERVALS} (a shorter `t_end_s` or a longer coupling interval)")
+                            f"a run may have at most {MAX_INTERVALS} (a shorter `{name}` or a longer coupling interval)")
     return n
 
 

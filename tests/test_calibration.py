@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import pathlib
+import re
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -115,6 +116,24 @@ def test_observation_between_save_times_is_refused(tmp_path):
     (tmp_path / "m.csv").write_text(HEADER + "dna_ug_per_g,static,100000,300,5,ug/g,\ndna_ug_per_g,static,1814400,300,5,ug/g,\n")
     with pytest.raises(InputError, match="at time 100000 s: not a save time"):
         cal.read_problem(problem_toml(tmp_path, "m.csv", ["k_a"], regimes=("static",)))
+
+
+def test_an_observation_beyond_the_longest_run_is_one_line(tmp_path):
+    """A time past the longest run the limits allow (`limits.MAX_INTERVALS`) names the
+    problem file, the condition and the time, not a command-line flag."""
+    (tmp_path / "m.csv").write_text(HEADER + "dna_ug_per_g,static,1e12,300,5,ug/g,\n")
+    path = problem_toml(tmp_path, "m.csv", ["k_a"], regimes=("static",))
+    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: the last observation of condition 'static': `time` = 1e\+12 s is"):
+        cal.read_problem(path)
+
+
+def test_a_spreadsheets_byte_order_mark_is_read(tmp_path):
+    """A measurement table saved as a spreadsheet's "CSV UTF-8" (starting with a UTF-8
+    byte-order mark) reads as the same table without it."""
+    rows = HEADER + "dna_ug_per_g,static,1814400,300,5,ug/g,\n"
+    (tmp_path / "plain.csv").write_text(rows)
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    assert read_measurements(tmp_path / "bom.csv") == read_measurements(tmp_path / "plain.csv")
 
 
 def test_a_static_condition_seen_once_keeps_only_its_end_state(tmp_path):

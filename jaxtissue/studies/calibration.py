@@ -36,7 +36,7 @@ import optimistix as optx
 from .. import cache, io, plots
 from ..data import DataError, Observation, read_measurements
 from ..io import InputError, params_from_table, read_toml
-from ..limits import check_study
+from ..limits import ResourceError, check_intervals, check_study
 from ..numerics import LevenbergMarquardt
 from ..params import FIELDS, Params, nondimensionalise, suggest
 from ..protocol import Protocol, save_times
@@ -133,6 +133,10 @@ class Problem:
             t_end = max(times + [0.0])
             if t_end <= 0:
                 continue
+            try:
+                check_intervals(t_end, self.model.coupling_interval_s, name="time")
+            except ResourceError as err:
+                raise InputError(f"the last observation of condition {name!r}: {err}") from None
             saved = save_times(t_end, self.model.coupling_interval_s)
             for o in self.observations:
                 if o.regime == name and np.min(np.abs(saved - o.time_s)) > 1e-6 * max(1.0, o.time_s):
@@ -533,13 +537,13 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
 
     fit_table = dict(table(doc, "fit", where))
     fit_table.update(overrides or {})
-    problem = Problem(
-        base=base, free=tuple(free), observations=observations, conditions=conditions,
-        model=settings(ModelSettings, table(doc, "model", where), where, "model"),
-        fit=settings(FitSettings, fit_table, where, "fit"),
-        name=str(doc.get("name", path.stem)),
-    )
-    return problem
+    model = settings(ModelSettings, table(doc, "model", where), where, "model")
+    fit_settings = settings(FitSettings, fit_table, where, "fit")
+    try:  # the observation times against the model's save times (`Problem._plan`)
+        return Problem(base=base, free=tuple(free), observations=observations, conditions=conditions, model=model,
+                       fit=fit_settings, name=str(doc.get("name", path.stem)))
+    except InputError as err:
+        raise InputError(f"{where}: {err}") from None
 
 
 def fitted_model(path) -> ModelSettings | None:
