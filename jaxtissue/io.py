@@ -50,12 +50,14 @@ def read_toml(path, kind: str, keys=None) -> tuple[dict, str]:
     in `keys`, is an `InputError` naming the file (`kind`: "sweep", "problem", ...)."""
     path = pathlib.Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (some editors write one) is not TOML
         doc = tomllib.loads(text)
     except FileNotFoundError:
         raise InputError(f"{path}: no such {kind} file") from None
-    except (IsADirectoryError, UnicodeDecodeError):
-        raise InputError(f"{path}: not a TOML {kind} file") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a {kind} file") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a TOML {kind} file (not UTF-8 text)") from None
     except tomllib.TOMLDecodeError as err:
         raise InputError(f"{path}: not valid TOML ({err})") from None
     for key in doc if keys is not None else ():
@@ -83,16 +85,7 @@ def write_params_toml(params: Params, path, model: dict | None = None, notes: tu
 def read_params_toml(path, base: Params | None = None) -> Params:
     """Parameters from a TOML file: a `[parameters]` table (or top-level keys) of
     `name = value`; names not given keep `base` (default: the paper's values)."""
-    path = pathlib.Path(path)
-    try:
-        with open(path, "rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such parameter file") from None
-    except IsADirectoryError:
-        raise InputError(f"{path}: is a folder, not a parameter file") from None
-    except tomllib.TOMLDecodeError as err:
-        raise InputError(f"{path}: not valid TOML ({err})") from None
+    doc, _ = read_toml(path, "parameter")
     table = doc.get("parameters", doc)
     if not isinstance(table, dict):
         raise InputError(f"{path}: [parameters] must be a table of name = value")

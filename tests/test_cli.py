@@ -98,6 +98,7 @@ def exit_code(argv):
         (["--t-end", "-5"], ["--t-end", "positive"]),
         (["--grid", "1", "2"], ["NY", "at least 3"]),
         (["--params", "/nonexistent/p.toml"], ["no such parameter file"]),
+        (["--params", sys.executable], ["not a TOML parameter file", "not UTF-8"]),
         (["--regime", "dynamic"], ["--regime", "invalid choice"]),
         (["--method", "rk4"], ["--method", "invalid choice"]),
         (["--regime", "flex", "--method", "rodas4p2"], ["method = 'rodas4p2'", "1-D grid", "flex run", "'ros34pw2'"]),
@@ -112,6 +113,15 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys, args, words):
     for word in words:
         assert word in err
     assert not out.exists()
+
+
+def test_toml_files_with_a_byte_order_mark_are_read(tmp_path):
+    """TOML has no byte-order mark, but some editors write one: the files read as without it."""
+    text = "[parameters]\nk_m0 = 1.5e-7\n"
+    (tmp_path / "plain.toml").write_text(text)
+    (tmp_path / "bom.toml").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert read_params_toml(tmp_path / "bom.toml") == read_params_toml(tmp_path / "plain.toml")
+    assert read_params_toml(tmp_path / "bom.toml").k_m0 == 1.5e-7
 
 
 def test_method_flag_chooses_the_solvers_method(tmp_path, monkeypatch):
