@@ -315,11 +315,15 @@ def _resumed_run(args):
     run_file = pathlib.Path(f"{args.resume}.checkpoint") / "run.json"
     if not run_file.exists():
         raise InputError(f"--resume {args.resume}: no interrupted run there ({run_file} missing)")
-    saved = json.loads(run_file.read_text())
-    saved.setdefault("method", "ros34pw2")  # a run.json from before --method
-    resumed = argparse.Namespace(**{k: saved[k] for k in _RUN_KEYS}, resume=args.resume, progress=args.progress)
-    resumed.grid = tuple(resumed.grid) if resumed.grid else None
-    return resumed, saved["params"]
+    try:
+        saved = json.loads(run_file.read_text())
+        saved.setdefault("method", "ros34pw2")  # a run.json from before --method
+        resumed = argparse.Namespace(**{k: saved[k] for k in _RUN_KEYS}, resume=args.resume, progress=args.progress)
+        resumed.grid = tuple(resumed.grid) if resumed.grid else None
+        return resumed, saved["params"]
+    except (ValueError, KeyError, TypeError, AttributeError) as err:  # not JSON, or not what a run writes
+        raise InputError(f"--resume {args.resume}: {run_file} is damaged ({type(err).__name__}: {err}); "
+                         f"remove {run_file.parent} to start the run again") from None
 
 
 def cmd_simulate(args) -> int:

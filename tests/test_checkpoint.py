@@ -3,6 +3,7 @@
 
 import os
 import pathlib
+import re
 import signal
 import subprocess
 import sys
@@ -10,11 +11,13 @@ import time
 
 import jax
 import numpy as np
+import pytest
 import xarray as xr
 
 import jaxtissue as jt
 from jaxtissue.studies.checkpoint import segment_edges, simulate_checkpointed
 from jaxtissue.cli import main
+from jaxtissue.io import InputError
 from jaxtissue.protocol import save_times
 
 JAXPR_TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"  # JAX's monitoring event of a new trace
@@ -36,6 +39,19 @@ def test_segments_agree_with_one_run_to_solver_tolerance(tmp_path):
     assert parts.ts == whole.ts and len(list((tmp_path / "k").glob("segment_*.npz"))) == 3
     np.testing.assert_allclose(parts.collagen_mg_per_g, whole.collagen_mg_per_g, rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(parts.final.o, whole.final.o, rtol=1e-4)
+
+
+def test_a_damaged_segment_is_named_and_computed_again_once_removed(tmp_path):
+    p, grid, folder = jt.paper_parameters(), jt.Grid(1, 8), tmp_path / "k"
+    first = simulate_checkpointed(p, jt.Protocol.static(), 6e4, grid, folder, 1)
+    segment = folder / "segment_0001.npz"
+    for damage in (b"junk", segment.read_bytes()[:100]):  # not a zip file; cut short
+        segment.write_bytes(damage)
+        with pytest.raises(InputError, match=rf"^{re.escape(str(segment))} is damaged \(.*\); remove it to compute that segment again$"):
+            simulate_checkpointed(p, jt.Protocol.static(), 6e4, grid, folder, 1)
+    segment.unlink()
+    again = simulate_checkpointed(p, jt.Protocol.static(), 6e4, grid, folder, 1)
+    np.testing.assert_array_equal(again.collagen_mg_per_g, first.collagen_mg_per_g)
 
 
 def test_segments_of_a_time_invariant_protocol_share_one_program(tmp_path):
@@ -119,3 +135,9 @@ def test_resume_without_a_kept_run_is_an_error(tmp_path, capsys):
     assert main(["simulate", "--resume", str(tmp_path / "nothing")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no interrupted run there" in err
+    (tmp_path / "run.checkpoint").mkdir()
+    for damaged in ("nonsense", "[1]", '{"regime": "static"}'):
+        (tmp_path / "run.checkpoint" / "run.json").write_text(damaged)
+        assert main(["simulate", "--resume", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "run.json is damaged" in err and "remove" in err, err
