@@ -2,6 +2,7 @@
 
 import dataclasses
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -206,9 +207,29 @@ def test_resume_recomputes_only_missing_chunks(static_file, tmp_path):
     xr.testing.assert_identical(xr.load_dataset(out / "sweep.nc"), whole)
 
 
-def test_resume_refuses_a_different_sweep(static_file, tmp_path):
+def test_resume_refuses_a_different_sweep_or_a_damaged_folder(static_file, tmp_path, monkeypatch):
+    """A different sweep, or a chunk or manifest that is not what a sweep writes: one
+    line naming the file, before any chunk is computed."""
     out = tmp_path / "o"
     assert main(["sweep", str(static_file), "--out", str(out)]) == 0
+    sweep = sw.read_sweep(static_file)
+    chunk, manifest = out / "chunks" / "00000004.npz", out / "chunks" / "sweep.json"
+    kept = chunk.read_bytes()
+    with monkeypatch.context() as m:
+        m.setattr(sw, "run_chunk", lambda *a: pytest.fail("computed before the folder was checked"))
+        for damage, message in ((b"junk", "ValueError"), (kept[:200], "BadZipFile|EOFError|OSError|ValueError"), (None, "ValueError: not the outputs of 4 ")):
+            if damage is None:
+                np.savez(chunk, failed=np.zeros(3))
+            else:
+                chunk.write_bytes(damage)
+            with pytest.raises(InputError, match=rf"^{re.escape(str(chunk))} is damaged \(({message})"):
+                sw.run(sweep, out, resume=True)
+        chunk.write_bytes(kept)
+        stamp = manifest.read_text()
+        manifest.write_text("{")
+        with pytest.raises(InputError, match=r"sweep.json is damaged \(JSONDecodeError.*remove .*chunks to start the sweep again"):
+            sw.run(sweep, out, resume=True)
+        manifest.write_text(stamp)
     static_file.write_text(STATIC.replace("n = 3", "n = 2"))
     with pytest.raises(InputError, match="holds a different sweep"):
         sw.run(sw.read_sweep(static_file), out, resume=True)

@@ -18,6 +18,7 @@ import hashlib
 import json
 import math
 import pathlib
+import zipfile
 
 import equinox as eqx
 import jax
@@ -323,6 +324,19 @@ def run_chunk(sweep: Sweep, start: int) -> dict:
     return {k: v[: len(values)] for k, v in result.items()}
 
 
+def _read_chunk(path: pathlib.Path, points: int) -> dict:
+    """A chunk's outputs as `run` wrote them (`points` sets); a damaged file is an
+    `InputError` naming it (read before any chunk is computed)."""
+    try:
+        with np.load(path) as z:
+            values = {k: z[k] for k in z.files}
+        if "failed" not in values or any(len(v) != points for v in values.values()):
+            raise ValueError(f"not the outputs of {points} parameter sets")
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise InputError(f"{path} is damaged ({type(err).__name__}: {err}); remove it to compute that chunk again") from None
+    return values
+
+
 def fingerprint(sweep: Sweep) -> str:
     """A short hash of the sweep file and its points (what a resumed sweep must match)."""
     return hashlib.sha256((sweep.source + repr(sweep.points.tolist())).encode()).hexdigest()[:16]
@@ -347,7 +361,12 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
     if writer:
         chunks.mkdir(parents=True, exist_ok=True)
         if manifest.exists():
-            if json.loads(manifest.read_text()) != stamp:
+            try:
+                held = json.loads(manifest.read_text())
+            except (ValueError, UnicodeDecodeError) as err:
+                raise InputError(f"`resume` {out}: {manifest} is damaged ({type(err).__name__}: {err}); "
+                                 f"remove {chunks} to start the sweep again") from None
+            if held != stamp:
                 raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
         else:
             atomic_write_text(manifest, json.dumps(stamp))
@@ -358,15 +377,15 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
 
         done = np.asarray(multihost_utils.broadcast_one_to_all(done))
     todo = [s for s, d in zip(starts, done) if not d]
-    computed = {}
+    by_start = {s: _read_chunk(chunks / f"{s:08d}.npz", min(sweep.chunk, sweep.size - s)) for s, d in zip(starts, done) if d}
     with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not (progress and writer)) as bar:
         for s in todo:
             result = run_chunk(sweep, s)
             if writer:
                 atomic_write(chunks / f"{s:08d}.npz", lambda f, result=result: np.savez(f, **result))
-            computed[s] = result
+            by_start[s] = result
             bar.update(1)
-    parts = [computed[s] if s in computed else dict(np.load(chunks / f"{s:08d}.npz")) for s in starts]
+    parts = [by_start[s] for s in starts]
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     ds = to_dataset(sweep, merged)
     if writer:
