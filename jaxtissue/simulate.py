@@ -428,6 +428,15 @@ def simulate(
         raise TypeError(f"params must be a jaxtissue Params, got {type(params).__name__}")
     if grid is None:
         grid = Grid.default(protocol.regime)
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a jaxtissue Grid (e.g. Grid(nx=1, ny=40)), got {type(grid).__name__}")
+    if initial_state is not None:
+        if not isinstance(initial_state, State):
+            raise TypeError(f"initial_state must be a jaxtissue State (e.g. a Result's final), got {type(initial_state).__name__}")
+        for name in ("o", "c", "m"):
+            if jnp.shape(getattr(initial_state, name)) != grid.shape:
+                raise ValueError(f"initial_state.{name} has shape {jnp.shape(getattr(initial_state, name))}; "
+                                 f"the {grid.nx} x {grid.ny} grid needs {grid.shape}")
     for name, value in (("t_end_s", t_end_s), ("coupling_interval_s", coupling_interval_s)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} = {value!r} must be a positive number of seconds")

@@ -126,3 +126,10 @@ def test_bad_arguments():
         jt.Grid(nx=1, ny=1)
     with pytest.raises(ValueError, match="regime"):
         jt.Protocol(regime="dynamic")
+    with pytest.raises(TypeError, match=r"grid must be a jaxtissue Grid \(e.g. Grid\(nx=1, ny=40\)\), got tuple"):
+        jt.simulate(jt.paper_parameters(), grid=(1, 8))
+    other = jt.State(*(jnp.ones((1, 10)) for _ in range(3)))
+    with pytest.raises(ValueError, match=r"initial_state.o has shape \(1, 10\); the 1 x 8 grid needs \(1, 8\)"):
+        jt.simulate(jt.paper_parameters(), grid=jt.Grid(1, 8), initial_state=other)
+    with pytest.raises(TypeError, match="initial_state must be a jaxtissue State"):
+        jt.simulate(jt.paper_parameters(), grid=jt.Grid(1, 8), initial_state=jnp.ones((3, 1, 8)))
