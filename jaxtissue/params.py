@@ -145,7 +145,10 @@ class Params(eqx.Module):
     def __check_init__(self):
         for name, info in FIELDS.items():
             value = getattr(self, name)
-            concrete = concrete_value(value)
+            try:
+                concrete = concrete_value(value)
+            except TypeError:
+                raise TypeError(f"parameter {name} = {value!r} must be a number ({info.unit})") from None
             if concrete is None:
                 continue  # traced: checked where it is born, not inside jit
             bad = [v for v in np.ravel(concrete) if not (np.isfinite(v) and info.contains(float(v)))]
@@ -206,13 +209,19 @@ class SIParams(eqx.Module):
 
 
 def concrete_value(value):
-    """`value` as a NumPy array, or None if it is traced (then checks wait for later)."""
+    """`value` as a NumPy array, or None if it is traced (then checks wait for later); a
+    `TypeError` if it is not a number or an array of numbers (None, a string, a bool)."""
     if isinstance(value, jax.core.Tracer):
         return None
+    if value is None or isinstance(value, (str, bytes, bool, np.bool_)):
+        raise TypeError(f"{value!r} is not a number")
     try:
-        return np.asarray(value, dtype=float)
-    except (TypeError, jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+        concrete = np.asarray(value)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
         return None
+    if not (np.issubdtype(concrete.dtype, np.integer) or np.issubdtype(concrete.dtype, np.floating)):
+        raise TypeError(f"{value!r} is not a number")
+    return concrete.astype(float)
 
 
 def suggest(name: str, choices) -> str:

@@ -69,7 +69,10 @@ class Protocol(eqx.Module):
             ("hold_fraction", lambda v: (0 <= v) & (v < 0.25), "in [0, 0.25)"),
         )
         for name, ok, allowed in checks:
-            value = concrete_value(getattr(self, name))
+            try:
+                value = concrete_value(getattr(self, name))
+            except TypeError:
+                raise TypeError(f"protocol {name} = {getattr(self, name)!r} must be a number") from None
             if value is not None and not (np.all(np.isfinite(value)) and np.all(ok(value))):
                 bad = np.ravel(value)[~np.ravel(np.isfinite(value) & ok(np.where(np.isfinite(value), value, 0)))][0]
                 raise ProtocolValueError(name, float(bad), allowed)

@@ -424,12 +424,12 @@ def simulate(
     a `limits.ResourceError` (docs/model.md §10).
     """
     protocol = Protocol.static() if protocol is None else protocol
-    if not isinstance(params, Params):
-        raise TypeError(f"params must be a jaxtissue Params, got {type(params).__name__}")
-    if grid is None:
-        grid = Grid.default(protocol.regime)
-    if not isinstance(grid, Grid):
-        raise TypeError(f"grid must be a jaxtissue Grid (e.g. Grid(nx=1, ny=40)), got {type(grid).__name__}")
+    grid = Grid.default(getattr(protocol, "regime", "static")) if grid is None else grid
+    for name, value, kind, example in (("params", params, Params, "paper_parameters()"), ("protocol", protocol, Protocol, "Protocol.flex()"),
+                                       ("grid", grid, Grid, "Grid(nx=1, ny=40)"), ("beam", beam, BeamGrid, "BeamGrid()"),
+                                       ("options", options, SolverOptions, "SolverOptions(rtol=1e-6)")):
+        if not isinstance(value, kind):
+            raise TypeError(f"{name} must be a jaxtissue {kind.__name__} (e.g. {example}), got {type(value).__name__}")
     if initial_state is not None:
         if not isinstance(initial_state, State):
             raise TypeError(f"initial_state must be a jaxtissue State (e.g. a Result's final), got {type(initial_state).__name__}")

@@ -1,5 +1,7 @@
 """End-to-end static culture against the independent SciPy solution, and the API."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -128,6 +130,14 @@ def test_bad_arguments():
         jt.Protocol(regime="dynamic")
     with pytest.raises(TypeError, match=r"grid must be a jaxtissue Grid \(e.g. Grid\(nx=1, ny=40\)\), got tuple"):
         jt.simulate(jt.paper_parameters(), grid=(1, 8))
+    for name, value in (("protocol", "flex"), ("beam", (4, 8)), ("options", {"rtol": 1e-6}), ("params", {"k_m0": 1e-7})):
+        with pytest.raises(TypeError, match=rf"^{name} must be a jaxtissue \w+ \(e.g. .*\), got {type(value).__name__}$"):
+            jt.simulate(**{"params": jt.paper_parameters(), name: value})
+    for value in ("1e-7", None, True):  # NumPy would read "1e-7" as a number, and None as NaN
+        with pytest.raises(TypeError, match=rf"^parameter k_m0 = {re.escape(repr(value))} must be a number \(1/s\)$"):
+            jt.paper_parameters(k_m0=value)
+    with pytest.raises(TypeError, match=r"^protocol period_s = '1' must be a number$"):
+        jt.Protocol.flex(period_s="1")
     other = jt.State(*(jnp.ones((1, 10)) for _ in range(3)))
     with pytest.raises(ValueError, match=r"initial_state.o has shape \(1, 10\); the 1 x 8 grid needs \(1, 8\)"):
         jt.simulate(jt.paper_parameters(), grid=jt.Grid(1, 8), initial_state=other)
