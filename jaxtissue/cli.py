@@ -106,7 +106,10 @@ def _max_steps(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     parser = _Parser(prog="jaxtissue", description="Differentiable simulator of engineered-tissue formation.")
+    parser.add_argument("--version", action="version", version=f"jaxtissue {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     parser.commands = sub.choices  # name -> its parser, for hints on unknown flags
 

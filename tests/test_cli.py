@@ -226,6 +226,14 @@ def test_an_output_must_be_a_folder_of_its_own(tmp_path, capsys, monkeypatch, ou
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep.txt", "sub"]
 
 
+def test_version_is_the_packages(capsys):
+    import importlib.metadata
+
+    assert exit_code(["--version"]) == 0
+    assert capsys.readouterr().out == f"jaxtissue {jt.__version__}\n"
+    assert jt.__version__ == importlib.metadata.version("jaxtissue")  # the installed package's (pyproject.toml)
+
+
 def test_params_table_lists_every_field(capsys):
     assert main(["params"]) == 0
     out = capsys.readouterr().out
