@@ -106,11 +106,14 @@ def collect_less() -> None:
 
 
 def default_folder() -> pathlib.Path | None:
-    """`$XDG_CACHE_HOME/jaxtissue` (default `~/.cache/jaxtissue`), or None if
+    """`$XDG_CACHE_HOME/jaxtissue` (default `~/.cache/jaxtissue`, also where
+    `XDG_CACHE_HOME` is relative, which the XDG specification calls invalid), or None if
     `JAXTISSUE_NO_CACHE` is set to anything but "" or "0"."""
     if os.environ.get("JAXTISSUE_NO_CACHE", "") not in ("", "0"):
         return None
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        base = os.path.join(os.path.expanduser("~"), ".cache")
     return pathlib.Path(base) / "jaxtissue"
 
 

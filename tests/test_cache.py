@@ -36,6 +36,8 @@ def test_default_folder_follows_xdg_and_can_be_turned_off(monkeypatch, tmp_path)
     monkeypatch.delenv("XDG_CACHE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     assert default_folder() == tmp_path / "home" / ".cache" / "jaxtissue"
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/cache")  # invalid (XDG): not a folder in the working one
+    assert default_folder() == tmp_path / "home" / ".cache" / "jaxtissue"
     monkeypatch.setenv("JAXTISSUE_NO_CACHE", "1")
     assert default_folder() is None
     monkeypatch.setenv("JAXTISSUE_NO_CACHE", "0")
