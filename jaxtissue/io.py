@@ -118,7 +118,7 @@ def make_params(changes: dict, base: Params | None = None, where: str = "paramet
     base = Params() if base is None else base
     try:
         return base.replace(**changes)
-    except ValueError as err:
+    except (TypeError, ValueError) as err:  # a value out of range, or not a number
         raise InputError(f"{where}: {err}") from None
 
 

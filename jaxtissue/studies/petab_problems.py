@@ -309,7 +309,7 @@ def _protocols(problem: PetabProblem) -> dict:
                 raise InputError(f"{where}: hold_fraction must be the same in every period of a schedule")
             out[e.id] = Protocol.schedule([m["period_s"] for m in merged], [m["post_displacement_mm"] for m in merged],
                                           stage_length_s=float(length), hold_fraction=merged[0]["hold_fraction"])
-        except ValueError as err:
+        except (TypeError, ValueError) as err:
             raise InputError(f"{where}: {err}") from None
     return out
 

@@ -106,7 +106,7 @@ def _check_value(name, value, where):
         return
     try:
         Protocol.flex(**{name: value})
-    except ValueError as err:
+    except (TypeError, ValueError) as err:
         raise InputError(f"{where}: {err}") from None
 
 
