@@ -124,6 +124,15 @@ def test_toml_files_with_a_byte_order_mark_are_read(tmp_path):
     assert read_params_toml(tmp_path / "bom.toml").k_m0 == 1.5e-7
 
 
+def test_a_saved_parameter_that_is_not_a_number_is_one_line():
+    """Values read back from a file (a checkpoint's run.json) go through `make_params`:
+    a string there is an `InputError` naming the file, not a `TypeError`."""
+    from jaxtissue.io import InputError, make_params
+
+    with pytest.raises(InputError, match=r"^run.json: parameter k_m0 = 'abc' must be a number \(1/s\)$"):
+        make_params({"k_m0": "abc"}, where="run.json")
+
+
 def test_method_flag_chooses_the_solvers_method(tmp_path, monkeypatch):
     """`simulate --method` reaches the run's `SolverOptions` (the run itself stopped
     before it compiles; the stepper's own tests: tests/test_solver.py)."""
