@@ -77,7 +77,8 @@ def extrapolation(params=None, protocol=None, t_end_s=None) -> list[str]:
         s = SUPPORTED[name]
         outside = np.ravel(value)[(np.ravel(value) < s.low) | (np.ravel(value) > s.high)]
         if outside.size:
-            lines.append(f"{name} = {outside[0]:g} {s.unit} is outside the supported range {s.low:g}-{s.high:g} {s.unit} "
+            unit = "" if s.unit == "1" else f" {s.unit}"  # a fraction: no unit to name
+            lines.append(f"{name} = {outside[0]:g}{unit} is outside the supported range {s.low:g}-{s.high:g}{unit} "
                          f"({s.why}): the result extrapolates")
     return lines
 

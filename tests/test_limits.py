@@ -34,6 +34,8 @@ def test_extrapolation_names_each_value_outside_its_supported_range():
     lines = limits.extrapolation(p.replace(thickness_mm=3.0), jt.Protocol.flex(period_s=1e-9, post_displacement_mm=24.9), 4e6)
     assert [line.split(" = ")[0] for line in lines] == ["thickness_mm", "period_s", "post_displacement_mm", "t_end_s"]
     assert "period_s = 1e-09 s is outside the supported range 0.5-2 s" in lines[1]
+    [o2] = limits.extrapolation(p.replace(o_ext=0.01), jt.Protocol.static(), jt.T_END_S)  # a fraction: no unit "1"
+    assert o2.startswith("o_ext = 0.01 is outside the supported range 0.05-0.2 (")
     schedule = jt.Protocol.schedule([1.0, 4.0], [5.0, 5.0])
     assert [line.split(" = ")[0] for line in limits.extrapolation(None, schedule)] == ["period_s"]
     assert limits.extrapolation(None, jt.Protocol.static(), None) == []  # a static run has no flexure to check
