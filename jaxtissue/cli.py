@@ -288,7 +288,7 @@ def parse_assignment(text: str) -> tuple[str, float]:
     try:
         number = float(value)
     except ValueError:
-        raise InputError(f"--set {name}={value}: {value!r} is not a number ({FIELDS[name].unit})") from None
+        raise InputError(f"--set {name}={value}: {value!r} is not a number{FIELDS[name].unit_text}") from None
     return name, number
 
 

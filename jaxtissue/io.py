@@ -108,7 +108,7 @@ def params_from_table(table: dict, where: str, base: Params | None = None) -> Pa
         if name not in FIELDS:
             raise InputError(f"{where}: unknown parameter {name!r}; {suggest(name, FIELDS)}")
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(f"{where}: parameter {name} = {value!r} must be a number ({FIELDS[name].unit})")
+            raise InputError(f"{where}: parameter {name} = {value!r} must be a number{FIELDS[name].unit_text}")
         changes[name] = float(value)
     return make_params(changes, base, where=where)
 

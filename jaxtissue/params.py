@@ -38,6 +38,11 @@ class FieldInfo(NamedTuple):
         hi = "]" if self.closed_high else ")"
         return f"{lo}{self.low:g}, {self.high:g}{hi}"
 
+    @property
+    def unit_text(self) -> str:
+        """" (unit)" for messages, "" for a dimensionless field (unit "1")."""
+        return "" if self.unit == "1" else f" ({self.unit})"
+
 
 inf = math.inf
 CM_PER_M = 100.0
@@ -148,14 +153,14 @@ class Params(eqx.Module):
             try:
                 concrete = concrete_value(value)
             except TypeError:
-                raise TypeError(f"parameter {name} = {value!r} must be a number ({info.unit})") from None
+                raise TypeError(f"parameter {name} = {value!r} must be a number{info.unit_text}") from None
             if concrete is None:
                 continue  # traced: checked where it is born, not inside jit
             bad = [v for v in np.ravel(concrete) if not (np.isfinite(v) and info.contains(float(v)))]
             if bad:
                 raise ValueError(
                     f"parameter {name} = {bad[0]:g} is outside its allowed range "
-                    f"{info.range_text()} ({info.unit}): {info.doc}"
+                    f"{info.range_text()}{info.unit_text}: {info.doc}"
                 )
 
     def replace(self, **changes) -> "Params":

@@ -136,6 +136,8 @@ def test_bad_arguments():
     for value in ("1e-7", None, True):  # NumPy would read "1e-7" as a number, and None as NaN
         with pytest.raises(TypeError, match=rf"^parameter k_m0 = {re.escape(repr(value))} must be a number \(1/s\)$"):
             jt.paper_parameters(k_m0=value)
+    with pytest.raises(ValueError, match=r"^parameter o_m = 1.5 is outside its allowed range \(0, 1\): O2 threshold"):
+        jt.paper_parameters(o_m=1.5)  # a fraction: no unit "(1)"
     with pytest.raises(TypeError, match=r"^protocol period_s = '1' must be a number$"):
         jt.Protocol.flex(period_s="1")
     other = jt.State(*(jnp.ones((1, 10)) for _ in range(3)))
