@@ -133,7 +133,7 @@ def read_sweep(path) -> Sweep:
     try:
         protocol = Protocol(regime=regime, **protocol_table)
     except (TypeError, ValueError) as err:
-        raise InputError(f"{where}: [protocol] {err}") from None
+        raise InputError(f"{where}: [protocol] {str(err).removeprefix('protocol ')}") from None
 
     fixed = doc.get("fixed", {})
     if not isinstance(fixed, dict):
