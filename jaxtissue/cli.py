@@ -228,7 +228,7 @@ def _default_grids() -> str:
 
 
 def _parameter_arguments(parser):
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="change one parameter (repeatable, once per parameter)")
     parser.add_argument("--params", metavar="FILE.toml", help="parameters from a TOML file")
 
 
@@ -296,7 +296,11 @@ def load_params(args):
     from .io import make_params, read_params_toml
 
     base = read_params_toml(args.params) if args.params else None
-    changes = dict(parse_assignment(text) for text in args.set)
+    changes = {}
+    for name, value in map(parse_assignment, args.set):
+        if name in changes and changes[name] != value:
+            raise InputError(f"--set {name} is given twice ({changes[name]:g} and {value:g}); give it once")
+        changes[name] = value
     params = make_params(changes, base, where="--set")
     u = getattr(args, "post_displacement", None)
     if u is not None and getattr(args, "regime", "flex") == "flex" and u >= params.length_mm:

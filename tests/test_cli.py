@@ -94,6 +94,7 @@ def exit_code(argv):
         (["--set", "o_m=1.5"], ["o_m", "1.5", "(0, 1)"]),
         (["--set", "k_a=fast"], ["k_a", "not a number"]),
         (["--set", "k_a"], ["NAME=VALUE"]),
+        (["--set", "k_m0=1e-7", "--set", "k_m0=2e-7"], ["--set k_m0 is given twice (1e-07 and 2e-07)"]),
         (["--t-end", "0"], ["--t-end", "positive"]),
         (["--t-end", "-5"], ["--t-end", "positive"]),
         (["--grid", "1", "2"], ["NY", "at least 3"]),
