@@ -77,9 +77,10 @@ def test_a_workers_chunk_program_is_kept_in_the_clients_folder(tmp_path, monkeyp
         np.testing.assert_allclose(again[k], serial[k].values.ravel()[2:4], rtol=1e-12)
 
 
-def test_a_lost_worker_changes_nothing(tmp_path, serial):
+def test_a_lost_worker_changes_nothing(tmp_path, serial, capsys):
     """A worker process killed while it works on its first chunk: Dask re-runs its tasks
-    and `sweep.nc` equals the serial run's to 1e-12."""
+    and `sweep.nc` equals the serial run's to 1e-12. (Then the store damaged: `--resume`
+    names it in one line before it starts a cluster.)"""
     out = tmp_path / "d"
     proc = start(out)
     try:
@@ -99,6 +100,10 @@ def test_a_lost_worker_changes_nothing(tmp_path, serial):
     assert "leaked" not in stderr  # the local cluster shut down with its client, not left to the process's end
     assert not victim.is_running()
     assert_same(out / "sweep.nc", serial)
+    (out / "sweep.zarr" / "zarr.json").write_text("junk")
+    assert main(["sweep", str(SHIPPED), "--out", str(out), "--dask", "local:2", "--resume", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "sweep.zarr is damaged (JSONDecodeError" in err and "remove it to start the sweep again" in err, err
 
 
 @pytest.mark.slow  # the default run: test_a_lost_worker_changes_nothing, tests/test_sweep.py::test_interrupted_sweep_resumes_to_the_same_file

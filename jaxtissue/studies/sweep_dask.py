@@ -117,10 +117,18 @@ def run(sweep: Sweep, out, cluster: str, resume: bool = False, progress: bool = 
     stamp = {"fingerprint": fingerprint(sweep), "size": sweep.size, "chunk": sweep.chunk}
     fresh = not (resume and store.exists())
     if not fresh:
-        held = xr.open_zarr(store, consolidated=False)
-        if json.loads(held.attrs.get("jaxtissue_sweep", "{}")) != stamp:
+        try:  # all of it read now: a damaged store is found before any chunk is computed
+            held = xr.open_zarr(store, consolidated=False).load()
+            missing = [k for k in (*SCALARS, "failed", "chunk_done") if k not in held]
+            if missing:
+                raise KeyError(f"no variable {missing[0]!r}")
+            held_stamp = json.loads(held.attrs.get("jaxtissue_sweep", "{}"))
+            done = np.asarray(held["chunk_done"].values)
+        except Exception as err:  # noqa: BLE001 - zarr's and xarray's errors for a damaged store have no common base
+            raise InputError(f"`resume` {out}: {store} is damaged ({type(err).__name__}: {err}); "
+                             f"remove it to start the sweep again") from None
+        if held_stamp != stamp:
             raise InputError(f"`resume` {out}: the folder holds a different sweep (its file or chunk size changed)")
-        done = np.asarray(held["chunk_done"].values)
     else:
         done = np.zeros(-(-sweep.size // sweep.chunk), bool)
     starts = [k * sweep.chunk for k in range(len(done)) if not done[k]]
