@@ -14,6 +14,7 @@ import shutil
 import tempfile
 import threading
 import tomllib
+import zipfile
 
 import numpy as np
 
@@ -146,6 +147,23 @@ def _umask() -> int:
 def atomic_write_text(path, text: str) -> None:
     """Write via a temporary file in the same folder, then rename."""
     atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def read_arrays(path, keys, redo: str, length: int | None = None) -> dict:
+    """The arrays of an .npz file jaxtissue wrote (a checkpoint's segment, a sweep's
+    chunk): at least `keys`, each `length` long if given. A damaged file is an
+    `InputError` naming it and what removing it does ("remove it to `redo`")."""
+    try:
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+        missing = [k for k in keys if k not in arrays]
+        if missing:
+            raise KeyError(f"no {missing[0]!r}")
+        if length is not None and any(len(v) != length for v in arrays.values()):
+            raise ValueError(f"not {length} entries long")
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as err:
+        raise InputError(f"{path} is damaged ({type(err).__name__}: {err}); remove it to {redo}") from None
+    return arrays
 
 
 def atomic_write(path, write) -> None:

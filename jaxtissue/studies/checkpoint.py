@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-import zipfile
 
 import jax.numpy as jnp
 import numpy as np
 
-from ..io import InputError, atomic_write
+from ..io import atomic_write, read_arrays
 from ..protocol import COUPLING_INTERVAL_S, interval_bounds, save_times
 from ..result import RESULTS, SERIES, Result, coordinates_cm
 from ..simulate import simulate
@@ -41,16 +40,8 @@ def _save(path: pathlib.Path, r: Result) -> None:
 
 
 def _load(path: pathlib.Path) -> dict:
-    """A segment `_save` wrote; a damaged one is an `InputError` naming it."""
-    try:
-        with np.load(path) as z:
-            data = {k: z[k] for k in z.files}
-        missing = [k for k in ("ts", "o", "c", "m", "num_steps", *SERIES) if k not in data]
-        if missing:
-            raise KeyError(f"no {missing[0]!r}")
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as err:
-        raise InputError(f"{path} is damaged ({type(err).__name__}: {err}); remove it to compute that segment again") from None
-    return data
+    """A segment `_save` wrote (`io.read_arrays`: a damaged one is an `InputError`)."""
+    return read_arrays(path, ("ts", "o", "c", "m", "num_steps", *SERIES), "compute that segment again")
 
 
 def _combine(parts: list[dict], params, grid) -> Result:

@@ -18,7 +18,6 @@ import hashlib
 import json
 import math
 import pathlib
-import zipfile
 
 import equinox as eqx
 import jax
@@ -29,7 +28,7 @@ from ..beam import BeamGrid
 from ..cache import add_xla_flag
 from ..grid import Grid
 from ..growth import has_cell_transport
-from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_toml, write_netcdf
+from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_arrays, read_toml, write_netcdf
 from ..params import FIELDS, Params, suggest
 from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
 from ..result import OUTPUTS, SCALARS
@@ -324,19 +323,6 @@ def run_chunk(sweep: Sweep, start: int) -> dict:
     return {k: v[: len(values)] for k, v in result.items()}
 
 
-def _read_chunk(path: pathlib.Path, points: int) -> dict:
-    """A chunk's outputs as `run` wrote them (`points` sets); a damaged file is an
-    `InputError` naming it (read before any chunk is computed)."""
-    try:
-        with np.load(path) as z:
-            values = {k: z[k] for k in z.files}
-        if "failed" not in values or any(len(v) != points for v in values.values()):
-            raise ValueError(f"not the outputs of {points} parameter sets")
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
-        raise InputError(f"{path} is damaged ({type(err).__name__}: {err}); remove it to compute that chunk again") from None
-    return values
-
-
 def fingerprint(sweep: Sweep) -> str:
     """A short hash of the sweep file and its points (what a resumed sweep must match)."""
     return hashlib.sha256((sweep.source + repr(sweep.points.tolist())).encode()).hexdigest()[:16]
@@ -377,7 +363,9 @@ def run(sweep: Sweep, out, resume: bool = False, progress: bool = False):
 
         done = np.asarray(multihost_utils.broadcast_one_to_all(done))
     todo = [s for s, d in zip(starts, done) if not d]
-    by_start = {s: _read_chunk(chunks / f"{s:08d}.npz", min(sweep.chunk, sweep.size - s)) for s, d in zip(starts, done) if d}
+    # finished chunks read first: a damaged one is found before any chunk is computed
+    by_start = {s: read_arrays(chunks / f"{s:08d}.npz", ("failed",), "compute that chunk again", min(sweep.chunk, sweep.size - s))
+                for s, d in zip(starts, done) if d}
     with tqdm(total=len(starts), initial=len(starts) - len(todo), desc="sweep", unit="chunk", disable=not (progress and writer)) as bar:
         for s in todo:
             result = run_chunk(sweep, s)
