@@ -528,7 +528,7 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
             else:
                 conditions[name] = Protocol(**spec)
         except (TypeError, ValueError) as err:
-            raise InputError(f"{where}: [conditions.{name}] {err}") from None
+            raise InputError(f"{where}: [conditions.{name}] {str(err).removeprefix('protocol ')}") from None
     if not conditions:
         raise InputError(f"{where}: [conditions] defines no condition (e.g. [conditions.static] regime = \"static\")")
     for o in observations:
