@@ -79,9 +79,6 @@ class BeamGrid(eqx.Module):
         if not isinstance(self.steps_per_cycle, int) or self.steps_per_cycle < 8:
             raise ValueError(f"beam steps_per_cycle = {self.steps_per_cycle!r} must be an integer >= 8")
 
-    def node_s(self, length):
-        return jnp.linspace(0.0, length, self.n_segments + 1)
-
 
 class Material(eqx.Module):
     """Section properties at the interior nodes × thickness cells (SI units)."""

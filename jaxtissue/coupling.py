@@ -17,7 +17,6 @@ The beam works in SI units (`Params.si()`), the growth grid in cm and cm/s.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -44,39 +43,45 @@ def with_rule_constant(params: Params, lumping: str) -> tuple[Params, str | None
     return params.replace(lumping_C=PAPER_RULE_C), why
 
 
-def beam_nodes_x_m(length_m, beam_grid: BeamGrid):
-    """Reference x (m, −L/2..L/2) of the beam's nodes on a strip of `length_m`."""
-    return beam_grid.node_s(length_m) - 0.5 * length_m
+def _to_x(values, x_from, x_to):
+    """Interpolate per-thickness-cell values (n, ny) linearly along the strip from the
+    points `x_from` to `x_to` (increasing NumPy arrays of x/L, constant beyond the ends).
+    Both sets of points scale with the strip's length, so each point's two neighbours
+    and weights are fixed: no search in the program."""
+    right = np.clip(np.searchsorted(x_from, x_to), 1, len(x_from) - 1)
+    w = np.clip((x_to - x_from[right - 1]) / (x_from[right] - x_from[right - 1]), 0.0, 1.0)[:, None]
+    return values[right - 1] * (1.0 - w) + values[right] * w
 
 
-def _to_x(values_nodes, x_from, x_to):
-    """Interpolate per-thickness-cell values (n, ny) from nodes `x_from` to `x_to`."""
-    return jax.vmap(lambda col: jnp.interp(x_to, x_from, col), in_axes=1, out_axes=1)(values_nodes)
+def _cells(grid: Grid) -> np.ndarray:
+    return (np.arange(grid.nx) + 0.5) / grid.nx  # cell centres, x/L
+
+
+def _nodes(beam_grid: BeamGrid) -> np.ndarray:
+    return np.linspace(0.0, 1.0, beam_grid.n_segments + 1)  # the beam's nodes (`BeamGrid.n_segments` equal segments), x/L
 
 
 def beam_from_ecm(y: State, p: Params, grid: Grid, beam_grid: BeamGrid, pins: str, fibre_law: str) -> Beam:
     """The beam whose sections carry the current ECM (growth cells → interior nodes)."""
     si = p.si()
-    x_nodes = beam_nodes_x_m(si.length_m, beam_grid)[1:-1]
+    x_nodes = _nodes(beam_grid)[1:-1]
     if grid.nx == 1:  # uniform along the strip
         m_sections = jnp.broadcast_to(y.m, (x_nodes.shape[0], grid.ny))
     else:
-        m_sections = _to_x(y.m, grid.x_centres(si.length_m), x_nodes)
+        m_sections = _to_x(y.m, _cells(grid), x_nodes)
     return Beam(Geometry.from_params(si, pins), Material.from_ecm(m_sections, si), beam_grid, fibre_law=fibre_law)
 
 
 def lumped_transport(cycle, p: Params, grid: Grid, beam_grid: BeamGrid, rule: str, pins: str) -> Transport:
     """The cycle's lumped transport on the growth grid (module docstring), cm/s, cm²/s."""
     si = p.si()
-    x_nodes = beam_nodes_x_m(si.length_m, beam_grid)
-    x_cells = grid.x_centres(si.length_m)
 
     def to_growth(sections):  # (n_segments − 1, ny) in m/s → (nx, ny) in cm/s
         ends = jnp.zeros_like(sections[:1]) if pins == "centroid" else None
         first = ends if ends is not None else sections[:1]
         last = ends if ends is not None else sections[-1:]
         nodes = jnp.concatenate([first, sections, last]) * CM_PER_M
-        return _to_x(nodes, x_nodes, x_cells)
+        return _to_x(nodes, _nodes(beam_grid), _cells(grid))
 
     C = p.lumping_C
     if rule == "dispersive":

@@ -98,6 +98,40 @@ def test_paper_rule_gives_a_symmetric_signed_flow(cases):
     assert not bool(r.failed) and np.isfinite(final(r, "collagen_mg_per_g"))
 
 
+
+@pytest.mark.parametrize("pins", ["centroid", "bottom"])
+def test_the_two_grids_exchange_values_by_linear_interpolation_along_the_strip(pins):
+    """Growth cells → beam nodes (the ECM the sections carry) and beam nodes → growth
+    cells (the cycle's lumped flow): linear interpolation in x on a strip of any length,
+    against np.interp at the points' positions in cm (constant beyond the end points)."""
+    from types import SimpleNamespace
+
+    from jaxtissue.beam import Material
+    from jaxtissue.coupling import beam_from_ecm, lumped_transport
+    from jaxtissue.state import State
+
+    rng = np.random.default_rng(3)
+    grid, beam = jt.Grid(nx=7, ny=5), BeamGrid(n_segments=10, steps_per_cycle=40)
+    p = P.replace(length_mm=31.0)
+    L = 3.1  # cm
+    x_cells = (np.arange(7) + 0.5) * L / 7 - L / 2
+    x_nodes = np.linspace(-L / 2, L / 2, 11)
+    interp = lambda x, xp, v: np.stack([np.interp(x, xp, col) for col in v.T], axis=1)  # noqa: E731
+
+    m = rng.random((7, 5))
+    y = State(o=jnp.zeros((7, 5)), c=jnp.zeros((7, 5)), m=jnp.asarray(m))
+    E = beam_from_ecm(y, p, grid, beam, pins, "neo-hookean").material.E
+    np.testing.assert_allclose(E, Material.from_ecm(interp(x_nodes[1:-1], x_cells, m), p.si()).E, rtol=1e-13)
+
+    sections = rng.random((9, 5))  # the cycle's mean |v_y| at the interior nodes, m/s
+    cycle = SimpleNamespace(mean_abs_vy=jnp.asarray(sections))
+    nodes = np.concatenate([np.zeros((1, 5)), sections, np.zeros((1, 5))]) if pins == "centroid" else \
+        np.concatenate([sections[:1], sections, sections[-1:]])
+    D = lumped_transport(cycle, p, grid, beam, "dispersive", pins).dispersion
+    h_cm = 0.1
+    np.testing.assert_allclose(D, p.lumping_C * h_cm * interp(x_cells, x_nodes, nodes * 100.0), rtol=1e-13)
+
+
 # ---- gradients through the whole staggered run
 
 OPTIONS = jt.SolverOptions(fixed_steps=10, dt0_s=5.0)
