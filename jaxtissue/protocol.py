@@ -34,6 +34,12 @@ class ProtocolValueError(ValueError):
         self.field, self.value, self.allowed = field, value, allowed
 
 
+def in_table(err: Exception) -> str:
+    """A protocol error's message for a file's table of protocol fields, which names
+    them itself: without the leading "protocol "."""
+    return str(err).removeprefix("protocol ")
+
+
 class Protocol(eqx.Module):
     """A culture protocol (docs/model.md §1, §4, §5).
 

@@ -39,7 +39,7 @@ from ..io import InputError, params_from_table, read_toml
 from ..limits import ResourceError, check_intervals, check_study
 from ..numerics import LevenbergMarquardt
 from ..params import FIELDS, Params, nondimensionalise, suggest
-from ..protocol import Protocol, save_times
+from ..protocol import Protocol, in_table, save_times
 from ..result import RESULTS, observe
 from ..simulate import simulate
 from ..state import State
@@ -528,7 +528,7 @@ def read_problem(path, overrides: dict | None = None) -> Problem:
             else:
                 conditions[name] = Protocol(**spec)
         except (TypeError, ValueError) as err:
-            raise InputError(f"{where}: [conditions.{name}] {str(err).removeprefix('protocol ')}") from None
+            raise InputError(f"{where}: [conditions.{name}] {in_table(err)}") from None
     if not conditions:
         raise InputError(f"{where}: [conditions] defines no condition (e.g. [conditions.static] regime = \"static\")")
     for o in observations:

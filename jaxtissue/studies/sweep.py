@@ -30,7 +30,7 @@ from ..grid import Grid
 from ..growth import has_cell_transport
 from ..io import InputError, atomic_write, atomic_write_text, number, params_from_table, read_arrays, read_toml, write_netcdf
 from ..params import FIELDS, Params, suggest
-from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, save_times
+from ..protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, THREE_WEEKS_S, Protocol, in_table, save_times
 from ..result import OUTPUTS, SCALARS
 from ..simulate import SolverOptions, method_problem, simulate
 from ._problem_files import grid_axis, space_filling
@@ -132,7 +132,7 @@ def read_sweep(path) -> Sweep:
     try:
         protocol = Protocol(regime=regime, **protocol_table)
     except (TypeError, ValueError) as err:
-        raise InputError(f"{where}: [protocol] {str(err).removeprefix('protocol ')}") from None
+        raise InputError(f"{where}: [protocol] {in_table(err)}") from None
 
     fixed = doc.get("fixed", {})
     if not isinstance(fixed, dict):
