@@ -88,6 +88,13 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _tolerance(text: str) -> float:
+    value = _positive_float(text)
+    if value >= 1:
+        raise argparse.ArgumentTypeError(f"{text} must be below 1 (a relative tolerance)")
+    return value
+
+
 def _grid_size(text: str) -> int:
     try:
         value = int(text)
@@ -123,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     _flex_arguments(s)
     s.add_argument("--lumping", choices=["dispersive", "paper"], default="dispersive", help="cycle-to-growth coupling rule (default dispersive)")
     _parameter_arguments(s)
-    s.add_argument("--rtol", type=_positive_float, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
+    s.add_argument("--rtol", type=_tolerance, default=1e-5, help="relative tolerance of the growth solve (default 1e-5)")
     s.add_argument("--max-steps", type=_max_steps, default=4096, metavar="N", help=f"step limit of each growth solve (default 4096, at most {MAX_STEPS})")
     s.add_argument("--method", choices=METHODS, default="ros34pw2",
                    help="time stepper of the growth solve: ros34pw2 (order 3, any run; the default) or rodas4p2 (order 4, "

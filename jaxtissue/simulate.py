@@ -80,6 +80,8 @@ class SolverOptions(eqx.Module):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"solver option {name} = {value!r} must be a positive number")
+        if self.rtol >= 1:  # a relative error of 100 % or more controls nothing
+            raise ValueError(f"solver option rtol = {self.rtol!r} must be below 1")
         for name in ("max_steps", "fixed_steps", "checkpoints"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or not 1 <= value <= limits.MAX_STEPS):

@@ -97,6 +97,7 @@ def exit_code(argv):
         (["--set", "k_m0=1e-7", "--set", "k_m0=2e-7"], ["--set k_m0 is given twice (1e-07 and 2e-07)"]),
         (["--t-end", "0"], ["--t-end", "positive"]),
         (["--t-end", "-5"], ["--t-end", "positive"]),
+        (["--rtol", "2"], ["--rtol", "below 1"]),
         (["--grid", "1", "2"], ["NY", "at least 3"]),
         (["--params", "/nonexistent/p.toml"], ["no such parameter file"]),
         (["--params", sys.executable], ["not a TOML parameter file", "not UTF-8"]),

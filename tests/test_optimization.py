@@ -189,6 +189,7 @@ BAD = [
     ("objective = \"total_collagen\"\nsteps = 3", "unknown key 'steps'"),
     ("objective = \"total_collagen\"\n[model]\nnest_intervals = \"yes\"", "nest_intervals = 'yes' must be true or false"),
     ("objective = \"total_collagen\"\n[model]\nstore_float32 = true", "[model] solver option store_float32 = True needs nest_intervals = True"),
+    ("objective = \"total_collagen\"\n[model]\nrtol = 2.0", "[model] solver option rtol = 2.0 must be below 1"),
 ]
 
 
