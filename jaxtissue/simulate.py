@@ -18,7 +18,7 @@ from .coupling import beam_from_ecm, lumped_transport, with_rule_constant
 from .grid import Grid
 from .growth import GrowthModel, has_cell_transport
 from .numerics import Rescaled, Stacked, line_sweeps, replayed_scan, stack
-from .params import Params, concrete_value, nondimensionalise
+from .params import FIELDS, Params, concrete_value, nondimensionalise
 from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
 from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
 from .state import State
@@ -432,6 +432,10 @@ def simulate(
                                        ("options", options, SolverOptions, "SolverOptions(rtol=1e-6)")):
         if not isinstance(value, kind):
             raise TypeError(f"{name} must be a jaxtissue {kind.__name__} (e.g. {example}), got {type(value).__name__}")
+    for name in FIELDS:  # a batch of parameter sets is vmapped, not passed whole
+        if jnp.shape(getattr(params, name)) != ():
+            raise ValueError(f"params.{name} has shape {jnp.shape(getattr(params, name))}; simulate runs one parameter set "
+                             "(map a batch with jax.vmap; jaxtissue.sweep.map_over_devices spreads one over devices)")
     if initial_state is not None:
         if not isinstance(initial_state, State):
             raise TypeError(f"initial_state must be a jaxtissue State (e.g. a Result's final), got {type(initial_state).__name__}")

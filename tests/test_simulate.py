@@ -140,6 +140,9 @@ def test_bad_arguments():
         jt.paper_parameters(o_m=1.5)  # a fraction: no unit "(1)"
     with pytest.raises(TypeError, match=r"^protocol period_s = '1' must be a number$"):
         jt.Protocol.flex(period_s="1")
+    for batch in ([1e-7, 2e-7], jnp.array([1e-7, 2e-7])):  # a batch is vmapped, not passed whole
+        with pytest.raises(ValueError, match=r"^params.k_m0 has shape \(2,\); simulate runs one parameter set \(map a batch with jax.vmap"):
+            jt.simulate(jt.paper_parameters(k_m0=batch), grid=jt.Grid(1, 8))
     other = jt.State(*(jnp.ones((1, 10)) for _ in range(3)))
     with pytest.raises(ValueError, match=r"initial_state.o has shape \(1, 10\); the 1 x 8 grid needs \(1, 8\)"):
         jt.simulate(jt.paper_parameters(), grid=jt.Grid(1, 8), initial_state=other)
