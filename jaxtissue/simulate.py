@@ -19,7 +19,7 @@ from .grid import Grid
 from .growth import GrowthModel, has_cell_transport
 from .numerics import Rescaled, Stacked, line_sweeps, replayed_scan, stack
 from .params import FIELDS, Params, concrete_value, nondimensionalise
-from .protocol import COUPLING_INTERVAL_S, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
+from .protocol import COUPLING_INTERVAL_S, PROTOCOL_FIELDS, T_END_S, THREE_WEEKS_S, Protocol, interval_bounds, save_times
 from .result import Result, coordinates_cm, observe, out_of_bounds, status_from_code
 from .state import State
 
@@ -379,6 +379,21 @@ def _float_array(x):
     return np.asarray(x, dtype=float)
 
 
+def _seconds(name: str, value) -> float:
+    """A run's time argument as a float: a concrete positive number (a Python or NumPy
+    number, or a 0-d array); it fixes the save times and so the program."""
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(f"{name} must be a concrete number of seconds, not a traced value: it fixes the save times "
+                        "(close over it, or mark it static, in jit)")
+    try:
+        seconds = math.nan if isinstance(value, (bool, str)) or np.ndim(value) != 0 else float(value)
+    except (TypeError, ValueError):
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"{name} = {value!r} must be a positive number of seconds")
+    return seconds
+
+
 def simulate(
     params: Params,
     protocol: Protocol | None = None,
@@ -432,10 +447,13 @@ def simulate(
                                        ("options", options, SolverOptions, "SolverOptions(rtol=1e-6)")):
         if not isinstance(value, kind):
             raise TypeError(f"{name} must be a jaxtissue {kind.__name__} (e.g. {example}), got {type(value).__name__}")
-    for name in FIELDS:  # a batch of parameter sets is vmapped, not passed whole
-        if jnp.shape(getattr(params, name)) != ():
-            raise ValueError(f"params.{name} has shape {jnp.shape(getattr(params, name))}; simulate runs one parameter set "
-                             "(map a batch with jax.vmap; jaxtissue.sweep.map_over_devices spreads one over devices)")
+    stages = (protocol.stages,) if protocol.stage_length_s is not None else ()
+    shapes = [(f"params.{n}", getattr(params, n), ()) for n in FIELDS] + \
+        [(f"protocol.{n}", getattr(protocol, n), () if n == "hold_fraction" else stages) for n in PROTOCOL_FIELDS]
+    for name, value, shape in shapes:  # a batch of parameter sets or protocols is vmapped, not passed whole
+        if np.shape(value) != shape:
+            raise ValueError(f"{name} has shape {np.shape(value)}; simulate runs one parameter set and protocol (map a batch "
+                             "with jax.vmap; jaxtissue.sweep.map_over_devices spreads one over devices; stages: Protocol.schedule)")
     if initial_state is not None:
         if not isinstance(initial_state, State):
             raise TypeError(f"initial_state must be a jaxtissue State (e.g. a Result's final), got {type(initial_state).__name__}")
@@ -443,9 +461,7 @@ def simulate(
             if jnp.shape(getattr(initial_state, name)) != grid.shape:
                 raise ValueError(f"initial_state.{name} has shape {jnp.shape(getattr(initial_state, name))}; "
                                  f"the {grid.nx} x {grid.ny} grid needs {grid.shape}")
-    for name, value in (("t_end_s", t_end_s), ("coupling_interval_s", coupling_interval_s)):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} = {value!r} must be a positive number of seconds")
+    t_end_s, coupling_interval_s = _seconds("t_end_s", t_end_s), _seconds("coupling_interval_s", coupling_interval_s)
     u, length = concrete_value(protocol.post_displacement_mm), concrete_value(params.length_mm)
     if protocol.regime == "flex" and u is not None and length is not None and np.any(u >= length):
         raise ValueError(f"protocol post_displacement_mm = {np.ravel(u)[0]:g} must be below the strip length {np.ravel(length)[0]:g} mm")

@@ -141,8 +141,17 @@ def test_bad_arguments():
     with pytest.raises(TypeError, match=r"^protocol period_s = '1' must be a number$"):
         jt.Protocol.flex(period_s="1")
     for batch in ([1e-7, 2e-7], jnp.array([1e-7, 2e-7])):  # a batch is vmapped, not passed whole
-        with pytest.raises(ValueError, match=r"^params.k_m0 has shape \(2,\); simulate runs one parameter set \(map a batch with jax.vmap"):
+        with pytest.raises(ValueError, match=r"^params.k_m0 has shape \(2,\); simulate runs one parameter set and protocol \(map a batch with jax.vmap"):
             jt.simulate(jt.paper_parameters(k_m0=batch), grid=jt.Grid(1, 8))
+        with pytest.raises(ValueError, match=r"^protocol.period_s has shape \(2,\);.*stages: Protocol.schedule\)$"):
+            jt.simulate(jt.paper_parameters(), jt.Protocol.flex(period_s=batch), grid=jt.Grid(2, 8))
+    for t_end in (np.float32(2e4), jnp.asarray(2e4)):  # NumPy and 0-d JAX numbers are numbers
+        assert jt.simulate(jt.paper_parameters(), t_end_s=t_end, grid=jt.Grid(1, 4), save="end").ts == (2e4,)
+    for t_end in (-1.0, float("nan"), jnp.array([1e5, 2e5]), "2e6", True):
+        with pytest.raises(ValueError, match=r"^t_end_s = .* must be a positive number of seconds$"):
+            jt.simulate(jt.paper_parameters(), t_end_s=t_end)
+    with pytest.raises(TypeError, match="t_end_s must be a concrete number of seconds, not a traced value"):
+        jax.jit(lambda t: jt.simulate(jt.paper_parameters(), t_end_s=t).collagen_mg_per_g)(2e4)
     other = jt.State(*(jnp.ones((1, 10)) for _ in range(3)))
     with pytest.raises(ValueError, match=r"initial_state.o has shape \(1, 10\); the 1 x 8 grid needs \(1, 8\)"):
         jt.simulate(jt.paper_parameters(), grid=jt.Grid(1, 8), initial_state=other)
