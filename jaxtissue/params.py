@@ -215,10 +215,11 @@ class SIParams(eqx.Module):
 
 def concrete_value(value):
     """`value` as a NumPy array, or None if it is traced (then checks wait for later); a
-    `TypeError` if it is not a number or an array of numbers (None, a string, a bool)."""
+    `TypeError` if it is not a number or an array of numbers (None, a string, a bool, a
+    list: an array is one leaf of the pytree, a list one leaf per item)."""
     if isinstance(value, jax.core.Tracer):
         return None
-    if value is None or isinstance(value, (str, bytes, bool, np.bool_)):
+    if value is None or isinstance(value, (str, bytes, bool, np.bool_, list, tuple, dict)):  # a list: a pytree of many leaves
         raise TypeError(f"{value!r} is not a number")
     try:
         concrete = np.asarray(value)

@@ -101,6 +101,7 @@ def test_engelmayr_problem_reads():
     (("lumping_C =", "lumping_K ="), "unknown parameter 'lumping_K' in [parameters.free]; did you mean 'lumping_C'?"),
     (('regime = "flex"', 'regime = "flexx"'), "[conditions.flex] regime = 'flexx'; allowed: 'static', 'flex'"),
     (('regime = "flex"', 'regime = "flex"\nperiod_s = -1.0'), ": [conditions.flex] period_s = -1 must be > 0 s"),
+    (('regime = "flex"', 'regime = "flex"\nperiod_s = [1.0, 2.0]'), ": [conditions.flex] period_s = [1.0, 2.0] must be a number"),
     (("starts = 1", "starts = 0"), "[fit] starts = 0 must be a positive integer"),
 ])
 def test_bad_problem_files_give_one_clear_line(tmp_path, edit, message):

@@ -140,7 +140,11 @@ def test_bad_arguments():
         jt.paper_parameters(o_m=1.5)  # a fraction: no unit "(1)"
     with pytest.raises(TypeError, match=r"^protocol period_s = '1' must be a number$"):
         jt.Protocol.flex(period_s="1")
-    for batch in ([1e-7, 2e-7], jnp.array([1e-7, 2e-7])):  # a batch is vmapped, not passed whole
+    with pytest.raises(TypeError, match=r"^parameter k_m0 = \[1e-07, 2e-07\] must be a number \(1/s\)$"):
+        jt.paper_parameters(k_m0=[1e-7, 2e-7])  # a list would be two leaves of the pytree
+    with pytest.raises(TypeError, match=r"^protocol period_s = \[1.0, 2.0\] must be a number$"):
+        jt.Protocol.flex(period_s=[1.0, 2.0])
+    for batch in (np.array([1e-7, 2e-7]), jnp.array([1e-7, 2e-7])):  # a batch is vmapped, not passed whole
         with pytest.raises(ValueError, match=r"^params.k_m0 has shape \(2,\); simulate runs one parameter set and protocol \(map a batch with jax.vmap"):
             jt.simulate(jt.paper_parameters(k_m0=batch), grid=jt.Grid(1, 8))
         with pytest.raises(ValueError, match=r"^protocol.period_s has shape \(2,\);.*stages: Protocol.schedule\)$"):

@@ -242,6 +242,7 @@ def test_resume_refuses_a_different_sweep_or_a_damaged_folder(static_file, tmp_p
     ("[parameters]\no_m = { values = [1.5] }\n", "o_m = 1.5 must be in"),
     ("regime = \"flex\"\n[protocol]\nperiod_s = -1\n[parameters]\nk_m0 = { values = [1e-7] }\n", "bad.toml: [protocol] period_s = -1 must be > 0 s"),
     ("regime = \"flex\"\n[protocol]\nperiod_s = \"1\"\n[parameters]\nk_m0 = { values = [1e-7] }\n", "bad.toml: [protocol] period_s = '1' must be a number"),
+    ("regime = \"flex\"\n[protocol]\nperiod_s = [1.0, 2.0]\n[parameters]\nk_m0 = { values = [1e-7] }\n", "bad.toml: [protocol] period_s = [1.0, 2.0] must be a number"),
     ("chunks = 3\n[parameters]\nk_m0 = { values = [1e-7] }\n", "unknown key 'chunks'; did you mean 'chunk'?"),
     ("design = \"lhs\"\n[parameters]\nk_m0 = { range = [1e-7, 3e-7] }\n", "samples = None must be an integer in [1, 10000000]"),
     ("[parameters]\nk_m0 = { values = [1e-7] }\n[model]\nmethod = \"rk4\"\n", "[model] solver option method = 'rk4'; allowed"),
