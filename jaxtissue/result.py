@@ -130,8 +130,13 @@ class Result(eqx.Module):
         return f"{what}; the run is valid up to t = {float(self.t_reached_s):g} s of {self.ts[-1]:g} s; {hint}"
 
     def index(self, t_s: float) -> int:
-        """The index of the save time closest to `t_s`."""
-        return int(np.argmin(np.abs(np.asarray(self.ts) - t_s)))
+        """The index of the save time closest to `t_s`; a `ValueError` for a time before
+        the first save time or after the last (no value of this run is from then)."""
+        ts = np.asarray(self.ts)
+        slack = 1e-9 * max(abs(ts[-1]), 1.0)
+        if not ts[0] - slack <= t_s <= ts[-1] + slack:
+            raise ValueError(f"t_s = {t_s:g} s is outside this run's save times, {ts[0]:g} to {ts[-1]:g} s")
+        return int(np.argmin(np.abs(ts - t_s)))
 
     def contents(self) -> tuple[dict, dict]:
         """What `to_xarray` and a run's result.nc hold, as NumPy arrays and plain values:

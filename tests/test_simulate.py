@@ -150,7 +150,10 @@ def test_bad_arguments():
         with pytest.raises(ValueError, match=r"^protocol.period_s has shape \(2,\);.*stages: Protocol.schedule\)$"):
             jt.simulate(jt.paper_parameters(), jt.Protocol.flex(period_s=batch), grid=jt.Grid(2, 8))
     for t_end in (np.float32(2e4), jnp.asarray(2e4)):  # NumPy and 0-d JAX numbers are numbers
-        assert jt.simulate(jt.paper_parameters(), t_end_s=t_end, grid=jt.Grid(1, 4), save="end").ts == (2e4,)
+        short = jt.simulate(jt.paper_parameters(), t_end_s=t_end, grid=jt.Grid(1, 4), save="end")
+        assert short.ts == (2e4,) and short.index(2e4) == 0
+    with pytest.raises(ValueError, match=r"^t_s = 1.8144e\+06 s is outside this run's save times, 20000 to 20000 s$"):
+        short.index(jt.THREE_WEEKS_S)  # not silently the last value
     for t_end in (-1.0, float("nan"), jnp.array([1e5, 2e5]), "2e6", True):
         with pytest.raises(ValueError, match=r"^t_end_s = .* must be a positive number of seconds$"):
             jt.simulate(jt.paper_parameters(), t_end_s=t_end)
