@@ -103,6 +103,7 @@ def test_engelmayr_problem_reads():
     (('regime = "flex"', 'regime = "flex"\nperiod_s = -1.0'), ": [conditions.flex] period_s = -1 must be > 0 s"),
     (('regime = "flex"', 'regime = "flex"\nperiod_s = [1.0, 2.0]'), ": [conditions.flex] period_s = [1.0, 2.0] must be a number"),
     (("starts = 1", "starts = 0"), "[fit] starts = 0 must be a positive integer"),
+    (("profile_points = 2", "profile_points = 1000000000"), "[fit] profile_points = 1000000000 must be at most 10000000"),
 ])
 def test_bad_problem_files_give_one_clear_line(tmp_path, edit, message):
     (tmp_path / "m.csv").write_text(HEADER + "dna_ug_per_g,flex,1814400,300,5,ug/g,\n")
@@ -112,6 +113,11 @@ def test_bad_problem_files_give_one_clear_line(tmp_path, edit, message):
         cal.read_problem(path)
     assert message in str(err.value)
     assert "\n" not in str(err.value)
+
+
+def test_a_batch_larger_than_the_starts_solves_them_all_at_once():
+    assert cal.FitSettings(starts=8, batch=100).simultaneous == 8  # not padded to 100 (memory)
+    assert cal.FitSettings(starts=8, batch=3).simultaneous == 3
 
 
 def test_observation_between_save_times_is_refused(tmp_path):

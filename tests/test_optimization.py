@@ -184,6 +184,8 @@ BAD = [
     ("objective = \"total_collagen\"\n[protocol]\nstages = 0", "stages = 0 must be a positive integer"),
     ("objective = \"total_collagen\"\n[protocol]\nstages = 4", "the last stage would start after t_end_s"),
     ("objective = \"total_collagen\"\n[optimizer]\nstarts = 0", "starts = 0 must be a positive integer"),
+    ("objective = \"total_collagen\"\n[optimizer]\nstarts = 1000000000", "[optimizer] starts = 1000000000 must be at most 10000000"),
+    ("objective = \"total_collagen\"\n[optimizer]\ngrid_points = 100000", "[optimizer] grid_points = 100000 is a grid of 1e+10 protocols; at most 10000000 (grid_points <= 3162)"),
     ("objective = \"total_collagen\"\nparameters = \"missing.toml\"", "no such parameter file"),
     ("objective = \"total_collagen\"\n[parameters]\nk_m0 = -1.0", "k_m0"),
     ("objective = \"total_collagen\"\nsteps = 3", "unknown key 'steps'"),
@@ -200,6 +202,15 @@ def test_bad_problem_files_give_one_line_and_exit_2(tmp_path, capsys, body, mess
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err and str(problem) in err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_memory_check_sizes_all_starts_at_once(tmp_path):
+    """The starts' gradients run at once (vmapped): the memory check counts them all."""
+    from jaxtissue.limits import ResourceError
+
+    design = opt.read_design(write_problem(tmp_path, PROBLEM.replace("starts = 2", "starts = 10000000")))
+    with pytest.raises(ResourceError, match=r"^the optimisation \(10000000 simultaneous runs on the 2 x 8 grid\) needs about"):
+        opt.run(design)
 
 
 def test_model_table_can_nest_the_interval_checkpoints(tmp_path):

@@ -36,7 +36,7 @@ import optimistix as optx
 from .. import cache, io, plots
 from ..data import DataError, Observation, read_measurements
 from ..io import InputError, params_from_table, read_toml
-from ..limits import ResourceError, check_intervals, check_study
+from ..limits import MAX_SWEEP_POINTS, ResourceError, check_intervals, check_study
 from ..numerics import LevenbergMarquardt
 from ..params import FIELDS, Params, nondimensionalise, suggest
 from ..protocol import Protocol, in_table, save_times
@@ -84,6 +84,16 @@ class FitSettings:
     rtol: float = 1e-5  # LM stops when steps in t and changes of r are below 1e-5, or χ² changes by < 1e-5 χ²
     profile_points: int = 4  # per side
     profile_max_steps: int = 30
+
+    def __post_init__(self):
+        for name in ("starts", "profile_points"):
+            if getattr(self, name) > MAX_SWEEP_POINTS:
+                raise ValueError(f"{name} = {getattr(self, name)} must be at most {MAX_SWEEP_POINTS}")
+
+    @property
+    def simultaneous(self) -> int:
+        """Starts solved at once: `batch`, or all of them where they are fewer."""
+        return min(self.batch, self.starts)
 
 
 def _seeded(params: Params, grid) -> dict:
@@ -344,11 +354,11 @@ def fit(problem: Problem, progress=None) -> FitResult:
     """Multi-start Levenberg–Marquardt; `progress(n)` is called after each batch."""
     s = problem.fit
     starts = latin_hypercube(problem, s.starts, s.seed)
-    solve = lm_solver(problem, s.batch)
+    solve = lm_solver(problem, s.simultaneous)
     runs = []
-    for b in range(0, len(starts), s.batch):
-        t0 = jnp.asarray(starts[b : b + s.batch])
-        pad = s.batch - t0.shape[0]  # keep one compiled batch shape
+    for b in range(0, len(starts), s.simultaneous):
+        t0 = jnp.asarray(starts[b : b + s.simultaneous])
+        pad = s.simultaneous - t0.shape[0]  # keep one compiled batch shape
         out = solve(jnp.concatenate([t0, jnp.repeat(t0[-1:], pad, axis=0)]), unpinned(s.max_steps))
         runs.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[: t0.shape[0]], out))
         if progress is not None:
@@ -591,7 +601,7 @@ def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = Fal
 
     m = problem.model
     t_end = max([o.time_s for o in problem.observations] + [0.0])
-    check_study("the calibration", m.grid("flex"), t_end, m.coupling_interval_s, problem.fit.starts * (1 + len(problem.free)),
+    check_study("the calibration", m.grid("flex"), t_end, m.coupling_interval_s, problem.fit.simultaneous * (1 + len(problem.free)),
                 reverse=False)  # its Jacobians are forward mode: a tangent per free parameter
     seconds = {}
     t0 = time.perf_counter()

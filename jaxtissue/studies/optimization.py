@@ -37,7 +37,7 @@ import optax
 
 from .. import cache, io, plots
 from ..io import InputError, number, params_from_table, read_params_toml, read_toml
-from ..limits import SUPPORTED, check_study
+from ..limits import MAX_SWEEP_POINTS, SUPPORTED, check_study
 from ..params import Params, suggest
 from ..protocol import LUMPING_RULES, THREE_WEEKS_S, Protocol, interval_bounds
 from ..simulate import simulate
@@ -69,6 +69,13 @@ class OptimizerSettings:
     grid_points: int = 16  # per axis of the brute-force grid (constant protocols)
     grid_chunk: int = 64  # protocols per vmapped batch
     seed: int = 0
+
+    def __post_init__(self):
+        if self.starts > MAX_SWEEP_POINTS:
+            raise ValueError(f"starts = {self.starts} must be at most {MAX_SWEEP_POINTS}")
+        if self.grid_points**2 > MAX_SWEEP_POINTS:
+            raise ValueError(f"grid_points = {self.grid_points} is a grid of {self.grid_points**2:.3g} protocols; at most "
+                             f"{MAX_SWEEP_POINTS} (grid_points <= {math.isqrt(MAX_SWEEP_POINTS)})")
 
 
 DESIGN_MODEL = ModelSettings(coupling_interval_s=2.016e5)  # 3 intervals a week: weekly stages align
@@ -407,7 +414,11 @@ def run(design: Design, progress: bool = False) -> Study:
 
     m = design.model
     draws = 1 if design.uncertainty is None else max(design.uncertainty.draws, design.uncertainty.check_draws)
-    check_study("the optimisation", m.grid("flex"), design.t_end_s, m.coupling_interval_s, draws, reverse=design.autodiff == "reverse")
+    s = design.settings  # the starts' gradients at once, then the grid's batches forward
+    check_study("the optimisation", m.grid("flex"), design.t_end_s, m.coupling_interval_s, s.starts * draws,
+                reverse=design.autodiff == "reverse")
+    check_study("the optimisation's grid", m.grid("flex"), design.t_end_s, m.coupling_interval_s,
+                min(s.grid_chunk, s.grid_points**2) * draws, reverse=False)
     base_theta = design.constant(BASELINE["period_s"], BASELINE["post_displacement_mm"])
     J0, V0, _ = cache.call(eqx.filter_jit(_evaluate), design, base_theta)
     with tqdm(total=design.settings.grid_points**2, desc="grid", unit="protocol", disable=not progress) as bar:
