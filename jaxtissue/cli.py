@@ -592,6 +592,11 @@ def cmd_calibrate(args) -> int:
 
         if args.hold_out is not None:
             problem, held_out = posterior.hold_out(problem, args.hold_out)
+        try:
+            settings = posterior.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples, seed=args.seed)
+        except ValueError as err:
+            raise InputError(f"--chains, --warmup, --samples: {err}") from None
+        posterior.check_size(problem, settings)
         posterior.split_cpu(problem, args.chains)  # before anything starts JAX's backends
     io.check_output_folder(args.out, args.overwrite)
     progress = sys.stderr.isatty() if args.progress is None else args.progress
@@ -601,7 +606,6 @@ def cmd_calibrate(args) -> int:
         return 1
     sampled = None
     if args.posterior:
-        settings = posterior.SamplerSettings(chains=args.chains, warmup=args.warmup, samples=args.samples, seed=args.seed)
         sampled = posterior.run(cal, settings, progress=progress, held_out=held_out)
     with io.output_folder(args.out, args.overwrite) as tmp:
         calibration.write(cal, tmp)

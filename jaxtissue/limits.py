@@ -177,4 +177,4 @@ def check_study(what: str, grid, t_end_s: float, coupling_interval_s: float, bat
     need = estimate(grid.nx * grid.ny, t_end_s, coupling_interval_s, save_series=False, reverse=reverse, batch=batch,
                     regime="flex")
     check_memory(need, f"{what} ({batch} simultaneous runs on the {grid.nx} x {grid.ny} grid)",
-                 "a coarser grid in [model], fewer draws or starts")
+                 "a coarser grid in [model], or fewer draws, starts or chains")

@@ -157,6 +157,18 @@ def test_calibrate_posterior_command_writes_inference_data(static_problem, sampl
     assert {"pairs.png", "traces.png"} <= {p.name for p in out.iterdir()}
 
 
+def test_sampler_sizes_beyond_memory_are_one_line_before_the_fit(static_problem, tmp_path, capsys):
+    from jaxtissue.cli import main
+
+    _, folder = static_problem
+    for flags, message in ((["--samples", "1000000000"], "--chains, --warmup, --samples: chains x samples = 4 x 1000000000 = 4e+09 draws; at most 10000000"),
+                           (["--chains", "10000000", "--samples", "1", "--warmup", "1"], "the posterior (10000000 simultaneous runs on the 2 x 8 grid) needs about")):
+        assert main(["calibrate", str(folder / "problem.toml"), "--posterior", *flags, "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and message in err, err
+        assert not (tmp_path / "o").exists()
+
+
 def test_hold_out_refuses_what_it_cannot_do(static_problem):
     problem, _ = static_problem
     with pytest.raises(InputError, match="`hold_out` = 'flex': no observation of that condition; allowed: repeat, static"):

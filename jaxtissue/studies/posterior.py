@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import cache
+from ..limits import MAX_SWEEP_POINTS, check_study
 from ._problem_files import ModelSettings
 from .calibration import Problem
 from .sweep import even_batches, use_cpu_devices, vmap_over_devices
@@ -76,6 +77,20 @@ class SamplerSettings:
     jitter: float = 0.5  # spread of the chains' starts around the ridge, in z (`whitening`)
     corrections: int = 2  # the warmup in corrections + 1 equal parts, the coordinates corrected between them (`correct`)
     pool: bool = True  # the draws use the chains' pooled step size and mass matrix (`pooled_adaptation`)
+
+    def __post_init__(self):
+        for name in ("warmup", "samples"):  # each chain's draws are kept (warmup: its positions)
+            if self.chains * getattr(self, name) > MAX_SWEEP_POINTS:
+                raise ValueError(f"chains x {name} = {self.chains} x {getattr(self, name)} = {self.chains * getattr(self, name):.3g} "
+                                 f"draws; at most {MAX_SWEEP_POINTS}")
+
+
+def check_size(problem: Problem, settings: SamplerSettings) -> None:
+    """A `limits.ResourceError` where the chains' log-density gradients, taken at once,
+    would not fit in memory (before the fit that precedes the sampling runs)."""
+    m = problem.model
+    t_end = max([o.time_s for o in problem.observations] + [0.0])
+    check_study("the posterior", m.grid("flex"), t_end, m.coupling_interval_s, settings.chains, reverse=True)
 
 
 # ---------------------------------------------------------------------------------------
@@ -253,12 +268,13 @@ def split_cpu(problem: Problem, chains: int) -> bool:
     tree of a batch-mate (the Engelmayr posterior samples 1.4× faster on 2 cores). Where
     every condition is static, a device per core: the chains batched on each share the
     per-operation overhead that dominates a cheap density (1.3× faster than a device
-    per chain). Returns whether the setting was made."""
+    per chain); also for more than 16 chains a core. Returns whether the setting was made."""
     import os
 
     observed = {o.regime for o in problem.observations} & set(problem.conditions)  # the conditions simulated
     coupled = any(problem.conditions[c].regime == "flex" for c in observed)
-    return use_cpu_devices(chains if coupled else min(chains, os.cpu_count() or 1))
+    cores = os.cpu_count() or 1
+    return use_cpu_devices(chains if coupled and chains <= 16 * cores else min(chains, cores))
 
 
 def run_chains(programs, u0, imm0, settings: SamplerSettings, args=(), progress=None, chunk: int = 50, refit=None,
