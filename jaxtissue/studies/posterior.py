@@ -1083,6 +1083,7 @@ def run(cal, settings: SamplerSettings = SamplerSettings(), progress: bool = Fal
     from tqdm.auto import tqdm
 
     problem = cal.problem
+    check_size(problem, settings)
     with tqdm(total=settings.warmup + settings.samples, desc="posterior: NUTS", unit="draw", disable=not progress) as bar:
         draws = sample(problem, cal.fit.t, cal.fit.jacobian, settings, progress=bar.update)
     # the held-out observations are evaluated with the fitted ones: one program for both
