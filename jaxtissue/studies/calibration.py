@@ -134,6 +134,12 @@ class Problem:
         return self.base.replace(**dict(zip(self.names, self.values_from_t(t))))
 
     # ---- the model
+    def check_memory(self, what: str, runs: int, reverse: bool) -> None:
+        """`limits.check_study` for `runs` simultaneous runs of this problem's model to its
+        last observation (`reverse`: with a reverse pass)."""
+        t_end = max([o.time_s for o in self.observations] + [0.0])
+        check_study(what, self.model.grid("flex"), t_end, self.model.coupling_interval_s, runs, reverse=reverse)
+
     def _plan(self):
         """(condition, t_end) of each simulation, checking that every observation
         time is one of its save times."""
@@ -599,10 +605,8 @@ def calibrate(problem: Problem, with_profiles: bool = True, progress: bool = Fal
 
     from tqdm.auto import tqdm
 
-    m = problem.model
-    t_end = max([o.time_s for o in problem.observations] + [0.0])
-    check_study("the calibration", m.grid("flex"), t_end, m.coupling_interval_s, problem.fit.simultaneous * (1 + len(problem.free)),
-                reverse=False)  # its Jacobians are forward mode: a tangent per free parameter
+    # its Jacobians are forward mode: a tangent per free parameter
+    problem.check_memory("the calibration", problem.fit.simultaneous * (1 + len(problem.free)), reverse=False)
     seconds = {}
     t0 = time.perf_counter()
     with tqdm(total=problem.fit.starts, desc="fit: starts", unit="start", disable=not progress) as bar:

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import cache
-from ..limits import MAX_SWEEP_POINTS, check_study
+from ..limits import MAX_SWEEP_POINTS
 from ._problem_files import ModelSettings
 from .calibration import Problem
 from .sweep import even_batches, use_cpu_devices, vmap_over_devices
@@ -88,9 +88,7 @@ class SamplerSettings:
 def check_size(problem: Problem, settings: SamplerSettings) -> None:
     """A `limits.ResourceError` where the chains' log-density gradients, taken at once,
     would not fit in memory (before the fit that precedes the sampling runs)."""
-    m = problem.model
-    t_end = max([o.time_s for o in problem.observations] + [0.0])
-    check_study("the posterior", m.grid("flex"), t_end, m.coupling_interval_s, settings.chains, reverse=True)
+    problem.check_memory("the posterior", settings.chains, reverse=True)
 
 
 # ---------------------------------------------------------------------------------------
