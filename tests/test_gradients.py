@@ -79,6 +79,7 @@ def test_adaptive_gradient_with_a_saved_series_matches_central_differences():
     assert abs(ad - fd) < 2e-5 * abs(fd), (ad, fd)
 
 
+@pytest.mark.slow  # cheaper: test_simulate.py's series by intervals; its gradient in test_posterior_study.py's log likelihood
 def test_static_series_by_intervals_agrees_and_differentiates():
     """`SolverOptions(static_series="intervals")` (one solve per coupling interval, no
     host callback): the dense run's series to the tolerance, and its gradient against

@@ -185,6 +185,7 @@ def _unit_square_moments(log_density, n, box=((0.0, 1.0), (0.0, 1.0))):
     return mean, np.sqrt(np.array([np.sum(w * a**2), np.sum(w * b**2)]) / np.sum(w) - mean**2)
 
 
+@pytest.mark.slow  # the default run: test_a_flat_likelihood_samples_each_prior_in_its_bounds, test_the_leader_map_spreads_a_pile_against_a_bound
 def test_a_posterior_piled_against_two_bounds_mixes():
     """A narrow ridge t₂ ≈ t₁ whose mass piles into the corner of the box at the lower
     bounds (as k_c,max and k_a of the Engelmayr problem do), where the soft box's walls
