@@ -33,6 +33,13 @@ MAX_SWEEP_POINTS = 10_000_000
 """Most parameter sets one sweep file may define (a sweep over more is split in files)."""
 
 
+def check_count(name: str, n: int) -> None:
+    """A `ValueError` where a study's count `name` = `n` (its starts, profile points)
+    exceeds `MAX_SWEEP_POINTS`."""
+    if n > MAX_SWEEP_POINTS:
+        raise ValueError(f"{name} = {n} must be at most {MAX_SWEEP_POINTS}")
+
+
 class Supported(NamedTuple):
     low: float
     high: float

@@ -36,7 +36,7 @@ import optimistix as optx
 from .. import cache, io, plots
 from ..data import DataError, Observation, read_measurements
 from ..io import InputError, params_from_table, read_toml
-from ..limits import MAX_SWEEP_POINTS, ResourceError, check_intervals, check_study
+from ..limits import ResourceError, check_count, check_intervals, check_study
 from ..numerics import LevenbergMarquardt
 from ..params import FIELDS, Params, nondimensionalise, suggest
 from ..protocol import Protocol, in_table, save_times
@@ -87,8 +87,7 @@ class FitSettings:
 
     def __post_init__(self):
         for name in ("starts", "profile_points"):
-            if getattr(self, name) > MAX_SWEEP_POINTS:
-                raise ValueError(f"{name} = {getattr(self, name)} must be at most {MAX_SWEEP_POINTS}")
+            check_count(name, getattr(self, name))
 
     @property
     def simultaneous(self) -> int:

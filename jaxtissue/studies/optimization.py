@@ -37,7 +37,7 @@ import optax
 
 from .. import cache, io, plots
 from ..io import InputError, number, params_from_table, read_params_toml, read_toml
-from ..limits import MAX_SWEEP_POINTS, SUPPORTED, check_study
+from ..limits import MAX_SWEEP_POINTS, SUPPORTED, check_count, check_study
 from ..params import Params, suggest
 from ..protocol import LUMPING_RULES, THREE_WEEKS_S, Protocol, interval_bounds
 from ..simulate import simulate
@@ -71,8 +71,7 @@ class OptimizerSettings:
     seed: int = 0
 
     def __post_init__(self):
-        if self.starts > MAX_SWEEP_POINTS:
-            raise ValueError(f"starts = {self.starts} must be at most {MAX_SWEEP_POINTS}")
+        check_count("starts", self.starts)
         if self.grid_points**2 > MAX_SWEEP_POINTS:
             raise ValueError(f"grid_points = {self.grid_points} is a grid of {self.grid_points**2:.3g} protocols; at most "
                              f"{MAX_SWEEP_POINTS} (grid_points <= {math.isqrt(MAX_SWEEP_POINTS)})")
