@@ -97,16 +97,21 @@ def _over_devices(params, protocols, t_end_s, grid, beam, n):
     return map_over_devices(lambda q: simulate(params, q, t_end_s, grid, beam=beam), n)(protocols)
 
 
+def _three_week_index(result) -> int:
+    """The index of the save time at 3 weeks (the last one of a shorter run)."""
+    return result.index(min(THREE_WEEKS_S, result.ts[-1]))
+
+
 def three_week(result) -> dict:
     """The values at 3 weeks (at the end of a shorter run)."""
-    i = result.index(min(THREE_WEEKS_S, result.ts[-1]))
+    i = _three_week_index(result)
     return {k: float(getattr(result, k)[i]) for k in KEYS}
 
 
 def _when(result) -> str | None:
     """None at 3 weeks, else the time that `three_week` reads ("t = … s") for a run
     that stops short of it."""
-    t = result.ts[result.index(min(THREE_WEEKS_S, result.ts[-1]))]
+    t = result.ts[_three_week_index(result)]
     return None if abs(t - THREE_WEEKS_S) < 1.0 else f"t = {t:g} s"
 
 
