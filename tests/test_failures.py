@@ -8,6 +8,7 @@ import jaxtissue as jt
 from helpers import SMALL_FLEX
 from jaxtissue.beam import BeamGrid
 from jaxtissue.cli import main
+from jaxtissue.limits import ExtrapolationWarning
 
 
 def one_error_line(capsys):
@@ -35,10 +36,12 @@ def test_step_limit_time_reached_is_the_last_valid_save():
 
 
 def test_beam_non_convergence_is_reported(tmp_path, capsys):
-    r = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 1e5, jt.Grid(2, 8), beam=BeamGrid(8, 8))
+    with pytest.warns(ExtrapolationWarning, match="post_displacement_mm = 24 mm is outside the supported range"):
+        r = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 1e5, jt.Grid(2, 8), beam=BeamGrid(8, 8))
     assert r.status == jt.RESULTS.beam_failed and float(r.t_reached_s) == 0.0
     # the run stops at its first failure: the growth steps are the first interval's alone
-    first = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 8))
+    with pytest.warns(ExtrapolationWarning):
+        first = jt.simulate(jt.paper_parameters(), jt.Protocol.flex(post_displacement_mm=24.0), 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 8))
     assert first.status == jt.RESULTS.beam_failed and int(r.num_steps) == int(first.num_steps) > 0
     assert r.failure_message().startswith("the beam's Newton solve did not converge in a loading cycle; the run is valid up to t = 0 s")
     out = tmp_path / "c"
@@ -55,7 +58,8 @@ def test_post_displacement_is_bounded_by_the_strip_in_the_parameters():
         jt.simulate(jt.paper_parameters(), protocol, 2e4, jt.Grid(2, 8), beam=BeamGrid(8, 16))
     with pytest.raises(ValueError, match=r"post_displacement_mm = -1 must be >= 0 mm"):
         jt.Protocol.flex(post_displacement_mm=-1.0)
-    long = jt.simulate(jt.paper_parameters().replace(length_mm=40.0), protocol, SMALL_FLEX["t_end_s"], jt.Grid(*SMALL_FLEX["grid_shape"]))
+    with pytest.warns(ExtrapolationWarning, match="post_displacement_mm = 30 mm is outside the supported range"):  # valid, not studied
+        long = jt.simulate(jt.paper_parameters().replace(length_mm=40.0), protocol, SMALL_FLEX["t_end_s"], jt.Grid(*SMALL_FLEX["grid_shape"]))
     assert float(long.post_force_max_N[-1]) > 0
 
 
