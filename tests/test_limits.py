@@ -148,7 +148,7 @@ def test_an_extrapolating_flex_run_warns_and_records_it(tmp_path, capsys):
     assert len(summary["warnings"]) == 2 and summary["warnings"][0] in warned[0] and "lumping" not in summary
 
 
-# a new session forks the child (no posix_spawn), which JAX warns of; the child execs at once
+# start_new_session=True makes subprocess fork the child (not posix_spawn), which JAX warns of; the child execs at once
 @pytest.mark.filterwarnings("ignore:os.fork\\(\\) was called:RuntimeWarning")
 def test_sigint_ends_a_run_at_once_and_a_second_writer_is_refused(tmp_path, capsys):
     """SIGINT reaches a command inside its compiled run: exit 130 within seconds, one
